@@ -1,0 +1,1 @@
+"""Process entry points: simulator driver, CAV perception agent, ego fusion agent."""

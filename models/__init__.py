@@ -1,0 +1,1 @@
+"""Neural networks: encoders, FAX attention, fusion methods, heads, registry."""

@@ -1,0 +1,1 @@
+"""v2vsim: multi-agent V2V cooperative-perception co-simulation."""

@@ -1,0 +1,385 @@
+"""The scenario YAML (DESIGN.md "Scenario YAML"): typed schema, defaults, overrides, clear errors.
+
+A scenario is loaded once into frozen dataclasses (`Scenario`). Each field carries what is
+allowed; unknown keys, wrong types and out-of-range values raise `ConfigError` naming the
+file, the key path and what is allowed. Input paths are relative to the YAML file;
+`output.dir` is relative to the working directory.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+
+METHODS = ("none", "late", "early", "attfuse", "fcooper", "v2vnet", "disconet", "cobevt")
+ENCODERS_BY_MODALITY = {"lidar": ("pointpillars",), "camera": ("sinbevt", "lara")}
+
+
+class ConfigError(Exception):
+    """A scenario problem a user can fix: the message names the file, key path and what is allowed."""
+
+
+# ---- field helpers: metadata says what is allowed -------------------------------------------
+
+
+def _f(default: Any, allowed: str = "", check: typing.Callable[[Any], bool] | None = None,
+       path: str | None = None) -> Any:
+    """A dataclass field with a range check. `path`: "file" (must exist) or "file?" (optional)."""
+    meta = {"allowed": allowed, "check": check, "path": path}
+    if isinstance(default, (list, dict)) or dataclasses.is_dataclass(default):
+        return field(default_factory=lambda: default, metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+def _pos(x: float) -> bool:
+    return x > 0
+
+
+def _nonneg(x: float) -> bool:
+    return x >= 0
+
+
+def _prob(x: float) -> bool:
+    return 0.0 <= x <= 1.0
+
+
+# ---- the schema ------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class TrafficConfig:
+    backend: Literal["sumo", "highway-env"] = "sumo"
+    net: str | None = _f(None, "path to a SUMO .net.xml, relative to the YAML", path="file?")
+    buildings: str | None = _f(None, "path to a SUMO .poly.xml, relative to the YAML", path="file?")
+    background_per_hour: float = _f(900.0, ">= 0", _nonneg)
+    warmup_s: float = _f(10.0, ">= 0 (background traffic runs this long before frame 0)", _nonneg)
+    building_height_m: tuple[float, float] = _f((8.0, 15.0), "[lo, hi] with 0 < lo <= hi",
+                                                lambda v: 0 < v[0] <= v[1])
+
+
+@dataclass(frozen=True)
+class CavsConfig:
+    count: int = _f(4, "1..16", lambda v: 1 <= v <= 16)
+    ego: str | tuple[str, ...] = _f("first", "'first', 'all' or a list of CAV ids",
+                                    lambda v: not isinstance(v, str) or v in ("first", "all"))
+
+
+@dataclass(frozen=True)
+class LidarConfig:
+    channels: int = _f(32, ">= 1", _pos)
+    points_per_channel: int = _f(1024, ">= 1", _pos)
+    range_m: float = _f(100.0, "> 0", _pos)
+    vertical_fov_deg: tuple[float, float] = _f((-25.0, 5.0), "[lo, hi] with -90 <= lo < hi <= 90",
+                                               lambda v: -90 <= v[0] < v[1] <= 90)
+    height_m: float = _f(1.9, "> 0", _pos)
+    noise_std_m: float = _f(0.02, ">= 0", _nonneg)
+    dropout: float = _f(0.0, "0..1", _prob)
+
+
+@dataclass(frozen=True)
+class CamerasConfig:
+    count: int = _f(4, "4 (front, right, left, back)", lambda v: v == 4)
+    fov_deg: float = _f(110.0, "0 < fov < 180", lambda v: 0 < v < 180)
+    width: int = _f(800, ">= 16", lambda v: v >= 16)
+    height: int = _f(600, ">= 16", lambda v: v >= 16)
+    render_scale: float = _f(0.25, "0 < scale <= 1", lambda v: 0 < v <= 1)
+    height_m: float = _f(1.6, "> 0 (mount height)", _pos)
+
+
+@dataclass(frozen=True)
+class SensorsConfig:
+    lidar: LidarConfig = field(default_factory=LidarConfig)
+    cameras: CamerasConfig = field(default_factory=CamerasConfig)
+
+
+@dataclass(frozen=True)
+class BevConfig:
+    size_m: float = _f(100.0, "> 0", _pos)
+    cells: int = _f(256, ">= 8", lambda v: v >= 8)
+
+
+@dataclass(frozen=True)
+class LatencyConfig:
+    mean: float = _f(0.0, ">= 0 (ms)", _nonneg)
+    jitter: float = _f(0.0, ">= 0 (ms, std of the distribution)", _nonneg)
+    distribution: Literal["normal", "uniform", "exponential"] = "normal"
+
+
+@dataclass(frozen=True)
+class DropConfig:
+    model: Literal["bernoulli", "gilbert_elliott"] = "bernoulli"
+    p: float = _f(0.0, "0..1", _prob)
+    p_gb: float = _f(0.0, "0..1 (good -> bad transition probability)", _prob)
+    p_bg: float = _f(1.0, "0..1 (bad -> good transition probability)", _prob)
+    loss_good: float = _f(0.0, "0..1", _prob)
+    loss_bad: float = _f(1.0, "0..1", _prob)
+
+
+@dataclass(frozen=True)
+class PoseNoiseConfig:
+    xy_std_m: float = _f(0.0, ">= 0", _nonneg)
+    yaw_std_deg: float = _f(0.0, ">= 0", _nonneg)
+
+
+@dataclass(frozen=True)
+class AuthConfig:
+    key_file: str | None = _f(None, "path to a secret key file, relative to the YAML", path="file?")
+
+
+@dataclass(frozen=True)
+class CommConfig:
+    range_m: float = _f(70.0, "> 0", _pos)
+    latency_ms: LatencyConfig = field(default_factory=LatencyConfig)
+    drop: DropConfig = field(default_factory=DropConfig)
+    bandwidth_mbps: float | None = _f(27.0, "> 0 or null (unlimited)", _pos)
+    max_age_ms: float = _f(500.0, "> 0", _pos)
+    pose_noise: PoseNoiseConfig = field(default_factory=PoseNoiseConfig)
+    compression: Literal["none", "zlib"] = "none"
+    channel_compression: int = _f(1, "1 (off) or a reduction ratio such as 8, 16, 32, 64", _pos)
+    compensate_latency: bool = False
+    auth: AuthConfig = field(default_factory=AuthConfig)
+
+
+@dataclass(frozen=True)
+class TransportConfig:
+    mode: Literal["peer", "client"] = "peer"
+    connect: tuple[str, ...] = _f((), "zenoh endpoints such as tcp/127.0.0.1:7447")
+    listen: tuple[str, ...] = _f((), "zenoh endpoints; empty = a free loopback port")
+    clock: Literal["lockstep", "realtime"] = "lockstep"
+
+
+@dataclass(frozen=True)
+class PerceptionConfig:
+    modality: Literal["lidar", "camera"] = "lidar"
+    encoder: Literal["pointpillars", "sinbevt", "lara"] = "pointpillars"
+    preset: Literal["tiny", "paper"] = "tiny"
+    methods: tuple[str, ...] = _f(METHODS, f"a non-empty list of {', '.join(METHODS)}",
+                                  lambda v: len(v) > 0 and all(m in METHODS for m in v))
+    weights: str = _f("auto", "'auto', 'none' or a checkpoint path")
+
+
+@dataclass(frozen=True)
+class OutputConfig:
+    dir: str = "runs/intersection"
+    rerun: bool = True
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str = "scenario"
+    seed: int = _f(0, ">= 0", _nonneg)
+    duration_s: float = _f(20.0, "> 0", _pos)
+    rate_hz: float = _f(10.0, "> 0", _pos)
+    traffic: TrafficConfig = field(default_factory=TrafficConfig)
+    cavs: CavsConfig = field(default_factory=CavsConfig)
+    sensors: SensorsConfig = field(default_factory=SensorsConfig)
+    bev: BevConfig = field(default_factory=BevConfig)
+    comm: CommConfig = field(default_factory=CommConfig)
+    transport: TransportConfig = field(default_factory=TransportConfig)
+    perception: PerceptionConfig = field(default_factory=PerceptionConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
+    source: str = field(default="<defaults>", metadata={"internal": True})  # the YAML file
+
+    @property
+    def frames(self) -> int:
+        return max(1, round(self.duration_s * self.rate_hz))
+
+    @property
+    def dt(self) -> float:
+        return 1.0 / self.rate_hz
+
+
+# ---- loading ---------------------------------------------------------------------------------
+
+
+def _type_name(tp: Any) -> str:
+    origin = typing.get_origin(tp)
+    if origin is Literal:
+        return " | ".join(repr(a) for a in typing.get_args(tp))
+    if origin in (typing.Union, types.UnionType):
+        return " or ".join(_type_name(a) for a in typing.get_args(tp))
+    if origin is tuple:
+        args = typing.get_args(tp)
+        inner = _type_name(args[0]) if args else "value"
+        return f"a list of {inner}" + (f" ({len(args)} items)" if args and args[-1] is not Ellipsis else "")
+    if dataclasses.is_dataclass(tp):
+        return "a mapping"
+    return {int: "an integer", float: "a number", str: "a string", bool: "true/false",
+            type(None): "null"}.get(tp, str(tp))
+
+
+class _Loader:
+    def __init__(self, source: str, base_dir: Path | None) -> None:
+        self.source = source
+        self.base_dir = base_dir
+
+    def fail(self, key: str, msg: str) -> typing.NoReturn:
+        raise ConfigError(f"{self.source}: {key}: {msg}")
+
+    def value(self, tp: Any, raw: Any, key: str) -> Any:
+        origin = typing.get_origin(tp)
+        if dataclasses.is_dataclass(tp):
+            return self.section(tp, raw, key)
+        if origin is Literal:
+            if raw not in typing.get_args(tp):
+                hint = difflib.get_close_matches(str(raw), [str(a) for a in typing.get_args(tp)], 1)
+                extra = f" (did you mean {hint[0]!r}?)" if hint else ""
+                self.fail(key, f"got {raw!r}; allowed: {_type_name(tp)}{extra}")
+            return raw
+        if origin in (typing.Union, types.UnionType):
+            args = typing.get_args(tp)
+            if raw is None and type(None) in args:
+                return None
+            errors = []
+            for a in args:
+                if a is type(None):
+                    continue
+                try:
+                    return self.value(a, raw, key)
+                except ConfigError as e:
+                    errors.append(e)
+            self.fail(key, f"got {raw!r}; expected {_type_name(tp)}")
+        if origin is tuple:
+            if not isinstance(raw, (list, tuple)):
+                self.fail(key, f"got {raw!r}; expected {_type_name(tp)}")
+            args = typing.get_args(tp)
+            if args and args[-1] is not Ellipsis:
+                if len(raw) != len(args):
+                    self.fail(key, f"got {len(raw)} items; expected {_type_name(tp)}")
+                return tuple(self.value(a, r, f"{key}[{i}]") for i, (a, r) in enumerate(zip(args, raw, strict=True)))
+            return tuple(self.value(args[0], r, f"{key}[{i}]") for i, r in enumerate(raw))
+        if tp is bool:
+            if not isinstance(raw, bool):
+                self.fail(key, f"got {raw!r}; expected true/false")
+            return raw
+        if tp is int:
+            if isinstance(raw, bool) or not isinstance(raw, int):
+                self.fail(key, f"got {raw!r}; expected an integer")
+            return raw
+        if tp is float:
+            if isinstance(raw, bool) or not isinstance(raw, (int, float)):
+                self.fail(key, f"got {raw!r}; expected a number")
+            return float(raw)
+        if tp is str:
+            if not isinstance(raw, (str, int, float)) or isinstance(raw, bool):
+                self.fail(key, f"got {raw!r}; expected a string")
+            return str(raw)
+        raise TypeError(f"schema type {tp} not handled")  # a bug in the schema, not user input
+
+    def section(self, cls: type, raw: Any, key: str) -> Any:
+        if raw is None:
+            raw = {}
+        if not isinstance(raw, dict):
+            self.fail(key or "<top level>", f"got {raw!r}; expected a mapping")
+        hints = typing.get_type_hints(cls)
+        fields = {f.name: f for f in dataclasses.fields(cls) if not f.metadata.get("internal")}
+        for k in raw:
+            if k not in fields:
+                where = f"{key}.{k}" if key else str(k)
+                hint = difflib.get_close_matches(str(k), list(fields), 1)
+                extra = f" (did you mean {hint[0]!r}?)" if hint else ""
+                self.fail(where, f"unknown key{extra}; allowed here: {', '.join(fields)}")
+        out = {}
+        for name, f in fields.items():
+            where = f"{key}.{name}" if key else name
+            if name not in raw:
+                continue  # default
+            v = self.value(hints[name], raw[name], where)
+            check = f.metadata.get("check")
+            if v is not None and check is not None and not check(v):
+                self.fail(where, f"got {raw[name]!r}; allowed: {f.metadata['allowed']}")
+            if v is not None and f.metadata.get("path"):
+                v = self.resolve(v, where)
+            out[name] = v
+        return cls(**out)
+
+    def resolve(self, p: str, key: str) -> str:
+        path = Path(p)
+        if not path.is_absolute() and self.base_dir is not None:
+            path = self.base_dir / path
+        if not path.is_file():
+            self.fail(key, f"file not found: {path} (paths are relative to the YAML file)")
+        return str(path.resolve())
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """'comm.drop.p=0.3' -> (['comm', 'drop', 'p'], 0.3); the value is parsed as a YAML scalar."""
+    if "=" not in text:
+        raise ConfigError(f"--set {text}: expected key.path=value")
+    key, _, val = text.partition("=")
+    key = key.strip()
+    if not key or any(not part for part in key.split(".")):
+        raise ConfigError(f"--set {text}: bad key path {key!r}")
+    try:
+        value = yaml.safe_load(val) if val.strip() else None
+    except yaml.YAMLError as e:
+        raise ConfigError(f"--set {text}: value is not valid YAML ({e.problem})") from None
+    return key.split("."), value
+
+
+def apply_overrides(raw: dict, overrides: typing.Sequence[str]) -> dict:
+    """Write each --set into the raw mapping (before validation, so it gets the same checks)."""
+    for text in overrides:
+        keys, value = parse_override(text)
+        node = raw
+        for k in keys[:-1]:
+            child = node.get(k)
+            if child is None:
+                child = node[k] = {}
+            if not isinstance(child, dict):
+                raise ConfigError(f"--set {text}: {k} is not a mapping")
+            node = child
+        node[keys[-1]] = value
+    return raw
+
+
+def load_scenario(path: str | Path, overrides: typing.Sequence[str] = ()) -> Scenario:
+    """Read, override and validate a scenario YAML. Raises ConfigError with a clear message."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: scenario file not found")
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        raise ConfigError(f"{path}: not valid YAML{where}: {getattr(e, 'problem', e)}") from None
+    if raw is None:
+        raw = {}
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{path}: the top level must be a mapping of keys, got {type(raw).__name__}")
+    raw = apply_overrides(raw, overrides)
+    loader = _Loader(str(path), path.parent)
+    sc = loader.section(Scenario, raw, "")
+    sc = dataclasses.replace(sc, source=str(path))
+    _check_cross_fields(sc, loader)
+    return sc
+
+
+def scenario_from_dict(raw: dict, base_dir: Path | None = None, source: str = "<dict>") -> Scenario:
+    """Validate an in-memory mapping (tests, PettingZoo env)."""
+    loader = _Loader(source, base_dir)
+    sc = dataclasses.replace(loader.section(Scenario, raw, ""), source=source)
+    _check_cross_fields(sc, loader)
+    return sc
+
+
+def _check_cross_fields(sc: Scenario, loader: _Loader) -> None:
+    allowed = ENCODERS_BY_MODALITY[sc.perception.modality]
+    if sc.perception.encoder not in allowed:
+        loader.fail("perception.encoder",
+                    f"{sc.perception.encoder!r} does not take {sc.perception.modality} input; "
+                    f"allowed for modality {sc.perception.modality!r}: {', '.join(allowed)}")
+    if sc.traffic.backend == "sumo" and sc.traffic.net is None:
+        loader.fail("traffic.net", "required for backend 'sumo': a SUMO .net.xml relative to the YAML")
+    if isinstance(sc.cavs.ego, tuple) and not sc.cavs.ego:
+        loader.fail("cavs.ego", "an empty list; allowed: 'first', 'all' or a list of CAV ids")
+    if sc.comm.drop.model == "gilbert_elliott" and sc.comm.drop.p_bg == 0 and sc.comm.drop.p_gb > 0:
+        loader.fail("comm.drop.p_bg", "0 with p_gb > 0 never leaves the bad state; allowed: 0 < p_bg <= 1")

@@ -1,0 +1,93 @@
+"""WorldState: what a traffic backend yields every tick, and the static map beside it.
+
+Plain frozen data; sensors, ground truth and agents read nothing else.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from v2vsim.geometry import Pose, box_corners
+
+
+@dataclass(frozen=True)
+class Actor:
+    """One vehicle. `pose` is the footprint centre on the ground; extent is (length, width, height)."""
+
+    id: str
+    kind: str  # "car", "truck", ... (SUMO vClass / highway-env class)
+    cav: bool
+    pose: Pose
+    extent: tuple[float, float, float]
+    speed: float = 0.0
+
+    def footprint(self) -> np.ndarray:
+        """(4, 2) world-frame corners of the footprint."""
+        return box_corners(self.pose.x, self.pose.y, self.pose.yaw, self.extent[0], self.extent[1])
+
+
+@dataclass(frozen=True)
+class Building:
+    """A vertical prism: footprint polygon (K, 2) in the world frame extruded to `height`."""
+
+    id: str
+    polygon: np.ndarray
+    height: float
+
+
+@dataclass(frozen=True)
+class StaticMap:
+    """What does not move.
+
+    roads: drivable-area polygons (each (K, 2)), lane polygons and junction outlines.
+    lane_markings: polylines (each (K, 2)) painted on the road; `dashed` says which are broken lines.
+    """
+
+    roads: tuple[np.ndarray, ...]
+    lane_markings: tuple[np.ndarray, ...]
+    dashed: tuple[bool, ...]
+    buildings: tuple[Building, ...] = ()
+    bounds: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)  # xmin, ymin, xmax, ymax
+
+    def __post_init__(self) -> None:
+        if len(self.dashed) != len(self.lane_markings):
+            raise ValueError("StaticMap: one `dashed` flag per lane marking")
+
+
+@dataclass(frozen=True)
+class WorldState:
+    """One tick of the world: sim time (s), frame index, actors. The static map is shared by reference."""
+
+    time: float
+    frame: int
+    actors: tuple[Actor, ...]
+    static: StaticMap = field(repr=False)
+
+    @property
+    def cavs(self) -> tuple[Actor, ...]:
+        return tuple(a for a in self.actors if a.cav)
+
+    def actor(self, actor_id: str) -> Actor | None:
+        for a in self.actors:
+            if a.id == actor_id:
+                return a
+        return None
+
+    def to_json(self) -> dict:
+        """The `world.json` of `v2vsim frame` (DESIGN.md)."""
+        return {
+            "time": self.time,
+            "actors": [
+                {
+                    "id": a.id,
+                    "kind": a.kind,
+                    "cav": a.cav,
+                    "pose": list(a.pose.as_tuple()),
+                    "extent": list(a.extent),
+                    "speed": a.speed,
+                }
+                for a in self.actors
+            ],
+        }
