@@ -253,7 +253,8 @@ class _Loader:
             if args and args[-1] is not Ellipsis:
                 if len(raw) != len(args):
                     self.fail(key, f"got {len(raw)} items; expected {_type_name(tp)}")
-                return tuple(self.value(a, r, f"{key}[{i}]") for i, (a, r) in enumerate(zip(args, raw, strict=True)))
+                pairs = enumerate(zip(args, raw, strict=True))
+                return tuple(self.value(a, r, f"{key}[{i}]") for i, (a, r) in pairs)
             return tuple(self.value(args[0], r, f"{key}[{i}]") for i, r in enumerate(raw))
         if tp is bool:
             if not isinstance(raw, bool):
