@@ -1,0 +1,25 @@
+"""Traffic backends: a simulator seen as a sequence of WorldStates (see `base.TrafficBackend`).
+
+`make_backend(scenario)` picks the backend named by `traffic.backend`. The concrete modules are
+imported lazily so that importing `v2vsim.traffic` loads neither libsumo nor highway-env.
+"""
+
+from __future__ import annotations
+
+from v2vsim.config import Scenario
+from v2vsim.traffic.base import BackendBase, TrafficBackend, cav_id
+
+__all__ = ["BackendBase", "TrafficBackend", "cav_id", "make_backend"]
+
+
+def make_backend(scenario: Scenario) -> TrafficBackend:
+    """The scenario's traffic backend, not yet started: call `reset()` (or use it in `with`)."""
+    if scenario.traffic.backend == "sumo":
+        from v2vsim.traffic.sumo import SumoBackend
+
+        return SumoBackend(scenario)
+    if scenario.traffic.backend == "highway-env":
+        from v2vsim.traffic.highway import HighwayEnvBackend
+
+        return HighwayEnvBackend(scenario)
+    raise ValueError(f"{scenario.source}: traffic.backend: unknown backend {scenario.traffic.backend!r}")

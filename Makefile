@@ -1,0 +1,21 @@
+# The two commands of the README. Both install what they need first (idempotent).
+PYTHON ?= python3
+PIP = $(PYTHON) -m pip install --disable-pip-version-check -q
+
+.PHONY: install demo test lint bench
+
+install:
+	$(PIP) torch==2.13.0
+	$(PIP) -e ".[dev]"
+
+demo: install
+	v2vsim run scenarios/intersection.yaml
+
+test: install
+	$(PYTHON) -m ruff check .
+	$(PYTHON) -m pytest
+
+bench: install
+	v2vsim bench sensors
+	v2vsim bench models
+	v2vsim bench comm

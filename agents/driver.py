@@ -1,0 +1,73 @@
+"""Simulator driver process: steps the traffic backend and publishes each WorldState.
+
+lockstep: frame k+1 is published only after every ego acknowledged frame k, so the run is
+deterministic for a seed and runs as fast as perception allows. realtime: frames go out at
+rate_hz on the wall clock whether or not anyone kept up.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import threading
+import time
+
+from agents.common import AgentArgs, Bus, parse_agent_args, progress_line, run_agent
+from v2vsim.traffic import make_backend
+from v2vsim.world_io import static_to_bytes, world_to_bytes
+
+START_TIMEOUT_S = 300.0  # every agent imports torch and builds its models before it is ready
+
+
+def drive(args: AgentArgs, bus: Bus) -> int:
+    sc = args.scenario
+    frames = args.frames or sc.frames
+    egos = args.egos
+    acks: dict[str, int] = {}
+    ack_event = threading.Event()
+
+    def on_ack(payload: bytes, key: str) -> None:
+        try:
+            doc = json.loads(payload)
+            acks[str(doc["ego"])] = int(doc["frame"])
+        except (ValueError, KeyError, TypeError):
+            return  # a malformed ack is ignored, never fatal
+        ack_event.set()
+
+    backend = make_backend(sc)
+    try:
+        world = backend.reset()
+        bus.serve("static", static_to_bytes(backend.static))
+        bus.subscribe("ack/*", on_ack)
+        expected = {f"cav/{c}" for c in args.cavs} | {f"ego/{e}" for e in egos}
+        bus.wait_alive(expected, START_TIMEOUT_S)
+        bus.put("start", json.dumps({"frames": frames, "wall_t0": time.time()}).encode())
+        t_start = time.monotonic()
+        for k in range(frames):
+            if k > 0:
+                world = backend.step()
+            bus.put("world", world_to_bytes(world))
+            if sc.transport.clock == "realtime":
+                next_tick = t_start + (k + 1) / sc.rate_hz
+                time.sleep(max(0.0, next_tick - time.monotonic()))
+            else:
+                while not all(acks.get(e, -1) >= k for e in egos if bus.is_alive(f"ego/{e}")):
+                    if not any(bus.is_alive(f"ego/{e}") for e in egos):
+                        print("driver: every ego process is gone; stopping", file=sys.stderr)
+                        return 1
+                    ack_event.wait(0.5)
+                    ack_event.clear()
+            progress_line("driver", k + 1, frames, t_start)
+        bus.put("done", json.dumps({"frames": frames}).encode())
+    finally:
+        backend.close()
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_agent_args("driver", argv)
+    return run_agent(args, "driver", "main", lambda bus: drive(args, bus))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,140 @@
+"""Benchmark the models on CPU, one thread: parameters and forward latency per encoder, per fusion
+method for N = 1, 2, 4, 8 agents, the decoder + heads, and the tiny per-frame budget
+(PointPillars on one 32k-point sweep + warp + FuseBEVT over 4 agents, target < 50 ms).
+
+    python benchmarks/bench_models.py [--presets tiny,paper] [--repeats 5] [--json out.json]
+
+Median of `repeats` timed runs after 2 warm-up runs, torch.no_grad, eval mode. Not a test: figures
+depend on the machine and its load.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from collections.abc import Callable
+
+import torch
+
+from models.presets import get_preset
+from models.registry import ENCODERS, FUSION, build_encoder, build_fusion, build_heads
+from models.warp import warp_to_ego
+
+AGENTS = (1, 2, 4, 8)
+
+
+def _time_ms(fn: Callable[[], object], repeats: int, warmup: int = 2) -> float:
+    with torch.no_grad():
+        for _ in range(warmup):
+            fn()
+        times = []
+        for _ in range(repeats):
+            t = time.perf_counter()
+            fn()
+            times.append((time.perf_counter() - t) * 1e3)
+    return statistics.median(times)
+
+
+def _params(m: torch.nn.Module) -> int:
+    return sum(p.numel() for p in m.parameters())
+
+
+def _poses(n: int) -> torch.Tensor:
+    p = torch.zeros(1, n, 3)
+    p[0, 1:] = torch.tensor([12.0, -5.0, 0.7])
+    return p
+
+
+def bench_preset(preset: str, repeats: int) -> list[dict]:
+    """Rows {preset, kind, name, agents, params, ms} for one preset."""
+    p = get_preset(preset)
+    rows: list[dict] = []
+    encoders: dict[str, torch.nn.Module] = {}
+    for name in ENCODERS:
+        enc = build_encoder(name, preset).eval()
+        encoders[name] = enc
+        inputs = enc.example_inputs()
+        call = (lambda e=enc, x=inputs: e(x)) if name == "pointpillars" else (lambda e=enc, x=inputs: e(*x))
+        rows.append({"preset": preset, "kind": "encoder", "name": name, "agents": 1,
+                     "params": _params(enc), "ms": _time_ms(call, repeats)})
+    for name in FUSION:
+        fus = build_fusion(name, preset).eval()
+        for n in AGENTS:
+            feats = torch.randn(1, n, p.channels, p.cells, p.cells).relu()
+            valid = torch.ones(1, n, dtype=torch.bool)
+            rows.append({"preset": preset, "kind": "fusion", "name": name, "agents": n,
+                         "params": _params(fus), "ms": _time_ms(lambda f=fus, x=feats, v=valid: f(x, v), repeats)})
+    feats4 = torch.randn(1, 4, p.channels, p.cells, p.cells).relu()
+    rows.append({"preset": preset, "kind": "warp", "name": "warp_to_ego", "agents": 4, "params": 0,
+                 "ms": _time_ms(lambda: warp_to_ego(feats4, _poses(4)), repeats)})
+    for modality in ("camera", "lidar"):
+        heads = build_heads(modality, preset).eval()
+        rows.append({"preset": preset, "kind": "heads", "name": f"heads-{modality}", "agents": 1,
+                     "params": _params(heads), "ms": _time_ms(lambda h=heads: h(feats4[:, 0]), repeats)})
+    # Per-frame ego budget: its own PointPillars sweep (the other CAVs encode in their own processes)
+    # + warp of the 4 maps + FuseBEVT.
+    pp, fuse = encoders["pointpillars"], build_fusion("cobevt", preset).eval()
+    sweep = pp.example_inputs()
+    valid4 = torch.ones(1, 4, dtype=torch.bool)
+
+    def frame() -> torch.Tensor:
+        own = pp(sweep)  # [1, C, F, F]
+        stack = torch.cat([own[:, None], feats4[:, 1:]], dim=1)
+        warped, _ = warp_to_ego(stack, _poses(4))
+        return fuse(warped, valid4)
+
+    rows.append({"preset": preset, "kind": "frame", "name": "pointpillars+warp+cobevt", "agents": 4,
+                 "params": _params(pp) + _params(fuse), "ms": _time_ms(frame, repeats)})
+    heads = build_heads("lidar", preset).eval()
+    rows.append({"preset": preset, "kind": "frame", "name": "pointpillars+warp+cobevt+heads", "agents": 4,
+                 "params": _params(pp) + _params(fuse) + _params(heads),
+                 "ms": _time_ms(lambda: heads(frame()), repeats)})
+    return rows
+
+
+def format_rows(rows: list[dict]) -> str:
+    """Markdown table: encoders/heads/frame one row each, fusion one row per method with N columns."""
+    out = ["| preset | kind | name | params | ms (N=1) | ms (N=2) | ms (N=4) | ms (N=8) |",
+           "|---|---|---|---:|---:|---:|---:|---:|"]
+    seen: dict[tuple[str, str, str], dict[int, float]] = {}
+    params: dict[tuple[str, str, str], int] = {}
+    for r in rows:
+        key = (r["preset"], r["kind"], r["name"])
+        seen.setdefault(key, {})[r["agents"]] = r["ms"]
+        params[key] = r["params"]
+    for key, by_n in seen.items():
+        if key[1] == "fusion":
+            cells = [f"{by_n[n]:.2f}" for n in AGENTS]
+        else:
+            n, ms = next(iter(by_n.items()))
+            cells = [f"{ms:.2f}" if n == a else "" for a in AGENTS]
+        out.append(f"| {key[0]} | {key[1]} | {key[2]} | {params[key]:,} | " + " | ".join(cells) + " |")
+    return "\n".join(out)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--presets", default="tiny,paper")
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--json", default=None, help="also write the rows as JSON here")
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(0)
+    rows: list[dict] = []
+    for preset in args.presets.split(","):
+        rows += bench_preset(preset, args.repeats)
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), median of {args.repeats}")
+    print(format_rows(rows))
+    frame = [r for r in rows if r["preset"] == "tiny" and r["name"] == "pointpillars+warp+cobevt"]
+    if frame:
+        print(f"\ntiny PointPillars (32k points) + warp + FuseBEVT, 4 agents: {frame[0]['ms']:.1f} ms (target < 50 ms)")
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(rows, fh, indent=1)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,98 @@
+"""FuseBEVT (CoBEVT supp. Sec. 3.1, Table A2): multi-agent BEV fusion with FAX self-attention.
+
+features [B, L, C, H, W] (ego at slot 0, other agents already warped into the ego frame) ->
+``blocks.0..2`` FAX-SA (Eq. 5 local window then Eq. 6 global grid, 3D relative bias over
+(agent, row, col)) on the stacked maps -> masked max over present agents -> LayerNorm + Linear
+(``head``) -> [B, C, H, W]. This follows the CoBEVT code (max-reduce over agents then a norm/linear
+head) rather than reading out slot 0, with the max restricted to present agents.
+
+Absent agents (``valid_mask`` False) have no influence: their features are replaced by zeros, their
+tokens are masked with -inf in every attention's logits and they are excluded from the max, so
+changing them changes nothing. The ego slot is always treated as present. Maps whose sides are not
+multiples of ``window`` are zero-padded and the padding is masked the same way, then cropped.
+
+Stage submodules (forward-hook names): ``blocks.0..2`` (channels-last [B, L, H, W, C]) and ``head``
+([B, C, H, W]); ``FuseBEVT.stage_shapes()`` reports them.
+
+Agent order: the relative bias is indexed by slot offsets n1 - n2, so permuting the non-ego agents
+permutes which bias entries pairs of agents use: FuseBEVT is NOT exactly permutation invariant over
+non-ego agents (it is when the bias does not depend on the agent offset beyond "same agent or not";
+tests check both). Only the first L slots of a ``max_agents`` table are used when L < max_agents.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from models.fax import FAXSelfAttention, trunc_normal_init
+from models.resnet import record_stage_shapes
+
+
+class FusionHead(nn.Module):
+    """LayerNorm + Linear on the agent-reduced map, channels-last in, [B, C, H, W] out."""
+
+    def __init__(self, channels: int) -> None:
+        super().__init__()
+        self.norm = nn.LayerNorm(channels)
+        self.proj = nn.Linear(channels, channels)
+
+    def forward(self, x: Tensor) -> Tensor:  # [B, H, W, C] -> [B, C, H, W]
+        return self.proj(self.norm(x)).permute(0, 3, 1, 2).contiguous()
+
+
+class FuseBEVT(nn.Module):
+    """FuseBEVT: ``blocks`` FAX-SA blocks (window = grid = ``window``) over stacked agent BEV maps."""
+
+    def __init__(
+        self,
+        channels: int,
+        heads: int = 4,
+        window: int = 8,
+        blocks: int = 3,
+        mlp_dim: int | None = None,
+        max_agents: int = 8,
+    ) -> None:
+        super().__init__()
+        self.channels = channels
+        self.window = window
+        self.max_agents = max_agents
+        mlp = mlp_dim or 2 * channels  # Table A2: dim 128, MLP 256
+        self.blocks = nn.ModuleList(
+            FAXSelfAttention(channels, heads, window, mlp, max_agents) for _ in range(blocks)
+        )
+        self.head = FusionHead(channels)
+        self.stage_names = tuple(f"blocks.{i}" for i in range(blocks)) + ("head",)
+        trunc_normal_init(self)
+
+    def forward(self, features: Tensor, valid_mask: Tensor) -> Tensor:
+        """features [B, L, C, H, W], valid_mask [B, L] bool (slot 0 = ego) -> fused [B, C, H, W]."""
+        b, n, c, h, w = features.shape
+        if n > self.max_agents:
+            raise ValueError(f"{n} agent slots > max_agents {self.max_agents}")
+        valid = valid_mask.to(torch.bool).clone()
+        valid[:, 0] = True  # the ego is always present
+        p = self.window
+        ph, pw = (-h) % p, (-w) % p
+        x = features.permute(0, 1, 3, 4, 2)  # [B, L, H, W, C]
+        x = torch.where(valid[:, :, None, None, None], x, torch.zeros((), dtype=x.dtype, device=x.device))
+        inside = torch.ones(h, w, dtype=torch.bool, device=x.device)
+        if ph or pw:
+            x = F.pad(x, (0, 0, 0, pw, 0, ph))  # pad W then H (channels-last)
+            inside = F.pad(inside, (0, pw, 0, ph), value=False)
+        token_mask = valid[:, :, None, None] & inside  # [B, L, H', W']
+        for blk in self.blocks:
+            x = blk(x, token_mask)  # [B, L, H', W', C]
+        x = x[:, :, :h, :w]
+        x = x.masked_fill(~valid[:, :, None, None, None], float("-inf")).amax(dim=1)  # [B, H, W, C]
+        return self.head(x)
+
+    def stage_shapes(self, inputs: tuple[Tensor, Tensor] | None = None) -> list[tuple[str, tuple[int, ...]]]:
+        """(stage name, output shape); default inputs: 2 agents on a 32x32 map.
+
+        ``blocks.i`` outputs are channels-last [B, L, H, W, C]; ``head`` is the fused [B, C, H, W].
+        """
+        if inputs is None:
+            inputs = (torch.randn(1, 2, self.channels, 32, 32), torch.ones(1, 2, dtype=torch.bool))
+        return record_stage_shapes(self, self.stage_names, lambda: self(*inputs))

@@ -1,0 +1,173 @@
+"""Build models by name: encoders, fusion methods, heads, the composed cooperative model.
+
+Adding a fusion method = one file in models/fusion/ + one line in FUSION (+ optional sizes in
+models.presets.ModelPreset.fusion_kwargs). "early" and "late" are brackets around the single-agent
+model, not fusion modules: they are in METHODS but not in FUSION.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import torch
+from torch import nn
+
+from models.cooperative import CooperativePerception
+from models.fusion.attfuse import AttFusion
+from models.fusion.cobevt import FuseBEVT
+from models.fusion.disconet import DiscoNetFusion
+from models.fusion.fcooper import FCooperFusion
+from models.fusion.none import NoFusion
+from models.fusion.v2vnet import V2VNetFusion
+from models.heads import BevHeads, build_bev_heads
+from models.lara import build_lara
+from models.pointpillars import build_pointpillars
+from models.presets import get_preset
+from models.sinbevt import build_sinbevt
+
+ENCODERS: dict[str, Callable[..., nn.Module]] = {
+    "pointpillars": build_pointpillars,
+    "sinbevt": build_sinbevt,
+    "lara": build_lara,
+}
+MODALITY: dict[str, str] = {"pointpillars": "lidar", "sinbevt": "camera", "lara": "camera"}
+FUSION: dict[str, Callable[..., nn.Module]] = {
+    "none": NoFusion,
+    "attfuse": AttFusion,
+    "fcooper": FCooperFusion,
+    "v2vnet": V2VNetFusion,
+    "disconet": DiscoNetFusion,
+    "cobevt": FuseBEVT,
+}
+METHODS: list[str] = ["none", "late", "early", "attfuse", "fcooper", "v2vnet", "disconet", "cobevt"]
+
+
+def _check(kind: str, name: str, allowed: list[str] | dict[str, Any]) -> None:
+    if name not in allowed:
+        raise ValueError(f"unknown {kind} {name!r}; allowed: {', '.join(allowed)}")
+
+
+def is_intermediate(method: str) -> bool:
+    """True for methods that fuse BEV feature messages (every FUSION entry but "none")."""
+    _check("method", method, METHODS)
+    return method in FUSION and method != "none"
+
+
+def intermediate_methods() -> list[str]:
+    """METHODS that fuse intermediate BEV features, in METHODS order."""
+    return [m for m in METHODS if is_intermediate(m)]
+
+
+def build_encoder(name: str, preset: str, bev_size_m: float = 100.0) -> nn.Module:
+    """Encoder `name` ("pointpillars" | "sinbevt" | "lara") of `preset` -> [B, C, F, F] over bev_size_m."""
+    _check("encoder", name, ENCODERS)
+    get_preset(preset)
+    return ENCODERS[name](preset, bev_size_m=bev_size_m)
+
+
+def build_fusion(name: str, preset: str) -> nn.Module:
+    """Fusion module `name` of `preset`: forward([B, L, C, H, W], [B, L] bool) -> [B, C, H, W]."""
+    _check("fusion method", name, FUSION)
+    p = get_preset(preset)
+    return FUSION[name](p.channels, **p.fusion_args(name))
+
+
+def build_heads(modality: str, preset: str) -> BevHeads:
+    """Decoder + segmentation heads (+ detection head for "lidar") of `preset`."""
+    return build_bev_heads(modality, preset)
+
+
+def build_cooperative(encoder: str, method: str, preset: str, bev_size_m: float = 100.0) -> CooperativePerception:
+    """The whole model for one encoder and one of METHODS (brackets use fusion "none")."""
+    _check("encoder", encoder, ENCODERS)
+    _check("method", method, METHODS)
+    modality = MODALITY[encoder]
+    fusion = build_fusion(method if is_intermediate(method) else "none", preset)
+    return CooperativePerception(
+        build_encoder(encoder, preset, bev_size_m), fusion, build_heads(modality, preset), method, modality, bev_size_m
+    )
+
+
+def _params(m: nn.Module) -> int:
+    return sum(p.numel() for p in m.parameters())
+
+
+def _hook_shapes(module: nn.Module, names: list[str], run: Callable[[], object]) -> list[tuple[str, tuple]]:
+    """Run `run` with forward hooks on the named submodules; (name, output shape) in `names` order."""
+    shapes: dict[str, tuple] = {}
+    subs = dict(module.named_modules())
+
+    def make(n: str) -> Callable[..., None]:
+        def hook(_m: nn.Module, _i: object, out: object) -> None:
+            t = out[0] if isinstance(out, (tuple, list)) else out
+            if isinstance(out, dict):
+                t = next(iter(out.values()))
+            if isinstance(t, torch.Tensor):
+                shapes[n] = tuple(t.shape)
+
+        return hook
+
+    handles = [subs[n].register_forward_hook(make(n)) for n in names]
+    try:
+        with torch.no_grad():
+            run()
+    finally:
+        for h in handles:
+            h.remove()
+    return [(n, shapes[n]) for n in names if n in shapes]
+
+
+def _row(name: str, kind: str, module: nn.Module, stages: list[tuple[str, tuple]], **extra: Any) -> dict:
+    return {
+        "name": name,
+        "kind": kind,
+        "params": _params(module),
+        "stages": [{"stage": s, "shape": list(shape)} for s, shape in stages],
+        "output": list(stages[-1][1]) if stages else None,
+        **extra,
+    }
+
+
+def describe_models(preset: str, agents: int = 4) -> list[dict]:
+    """Every encoder, fusion method and the heads of `preset`: name, kind, params, per-stage output shapes.
+
+    Runs one forward pass per model on example inputs (encoders: their `example_inputs()`; fusion:
+    `agents` random C x F x F maps; heads: the fused map) with forward hooks.
+    """
+    p = get_preset(preset)
+    rows: list[dict] = []
+    for name, modality in MODALITY.items():
+        enc = build_encoder(name, preset).eval()
+        rows.append(_row(name, f"encoder ({modality})", enc, enc.stage_shapes()))
+    feats = torch.randn(1, agents, p.channels, p.cells, p.cells)
+    valid = torch.ones(1, agents, dtype=torch.bool)
+    for name in FUSION:
+        fus = build_fusion(name, preset).eval()
+        names = [n for n, _ in fus.named_children()]
+        stages = _hook_shapes(fus, names, lambda fus=fus: fus(feats, valid))
+        stages.append(("output", tuple(fus(feats, valid).shape)))
+        rows.append(_row(name, "fusion", fus, stages, agents=agents))
+    for modality in ("camera", "lidar"):
+        heads = build_heads(modality, preset).eval()
+        names = ["decoder.stages.0", "decoder.stages.1", "decoder.stages.2", "dynamic", "static"]
+        if heads.detection is not None:
+            names += ["detection.cls", "detection.reg"]
+        stages = _hook_shapes(heads, names, lambda heads=heads: heads(feats[:, 0]))
+        rows.append(_row(f"heads-{modality}", "decoder+heads", heads, stages))
+    for name in METHODS:
+        if name not in FUSION:  # the brackets: no module of their own
+            rows.append({"name": name, "kind": "bracket", "params": 0, "stages": [], "output": None})
+    return rows
+
+
+def format_models_table(rows: list[dict]) -> str:
+    """Plain-text table of describe_models rows: name, kind, parameters, stage -> shape."""
+    lines = [f"{'name':<14} {'kind':<18} {'params':>12}  stages"]
+    for r in rows:
+        stages = ", ".join(f"{s['stage']}={'x'.join(str(d) for d in s['shape'])}" for s in r["stages"])
+        if not stages:
+            stages = {"early": "raw points merged in the ego frame -> encoder -> heads",
+                      "late": "per-CAV outputs merged in the ego frame (max / rotated NMS)"}.get(r["name"], "-")
+        lines.append(f"{r['name']:<14} {r['kind']:<18} {r['params']:>12,}  {stages}")
+    return "\n".join(lines)

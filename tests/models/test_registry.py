@@ -1,0 +1,131 @@
+"""models.registry: build every name, reject unknown ones, describe the models, compose the pipeline."""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable
+
+import pytest
+import torch
+
+from models import registry
+from models.fusion.base import FusionModule
+from models.presets import PRESETS, get_preset
+from models.registry import (
+    ENCODERS,
+    FUSION,
+    METHODS,
+    build_cooperative,
+    build_encoder,
+    build_fusion,
+    build_heads,
+    describe_models,
+    format_models_table,
+    intermediate_methods,
+    is_intermediate,
+)
+
+
+def test_tables() -> None:
+    assert set(ENCODERS) == {"pointpillars", "sinbevt", "lara"}
+    assert set(FUSION) == {"none", "attfuse", "fcooper", "v2vnet", "disconet", "cobevt"}
+    assert METHODS == ["none", "late", "early", "attfuse", "fcooper", "v2vnet", "disconet", "cobevt"]
+    assert intermediate_methods() == ["attfuse", "fcooper", "v2vnet", "disconet", "cobevt"]
+    assert not is_intermediate("late") and not is_intermediate("none") and is_intermediate("cobevt")
+
+
+@pytest.mark.parametrize("preset", sorted(PRESETS))
+def test_builds_every_fusion_and_heads(preset: str) -> None:
+    c = get_preset(preset).channels
+    for name in FUSION:
+        m = build_fusion(name, preset)
+        assert isinstance(m, torch.nn.Module)
+        if name != "cobevt":
+            assert isinstance(m, FusionModule) and m.channels == c
+    for modality in ("lidar", "camera"):
+        assert build_heads(modality, preset).decoder.channels == get_preset(preset).decoder_channels
+
+
+@pytest.mark.parametrize("name", sorted(ENCODERS))
+def test_builds_every_encoder(name: str) -> None:
+    enc = build_encoder(name, "tiny")
+    assert (enc.out_channels, enc.out_cells) == (64, 32)
+    paper = build_encoder(name, "paper")
+    assert (paper.out_channels, paper.out_cells) == (128, 32)
+
+
+@pytest.mark.parametrize(
+    "call",
+    [
+        lambda: build_encoder("pointnet", "tiny"),
+        lambda: build_fusion("where2comm", "tiny"),
+        lambda: build_fusion("late", "tiny"),
+        lambda: build_encoder("pointpillars", "huge"),
+        lambda: build_cooperative("pointpillars", "magic", "tiny"),
+        lambda: is_intermediate("magic"),
+    ],
+)
+def test_unknown_names_are_rejected_with_the_allowed_list(call: Callable[[], object]) -> None:
+    with pytest.raises(ValueError, match="allowed"):
+        call()
+
+
+def test_error_lists_the_names() -> None:
+    with pytest.raises(ValueError) as e:
+        build_fusion("nope", "tiny")
+    for n in FUSION:
+        assert n in str(e.value)
+
+
+def _lidar_batch(b: int = 1, l: int = 3) -> tuple[list, torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(0)
+    clouds = [
+        [torch.rand(3000, 4, generator=g) * torch.tensor([60.0, 60.0, 2.0, 1.0]) - torch.tensor([30.0, 30.0, 0.5, 0.0])
+         for _ in range(l)]
+        for _ in range(b)
+    ]  # fmt: skip
+    poses = torch.zeros(b, l, 3)
+    poses[:, 1:] = torch.tensor([8.0, -3.0, math.pi / 2])
+    valid = torch.ones(b, l, dtype=torch.bool)
+    valid[:, -1] = False
+    return clouds, poses, valid
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_cooperative_forward_and_predict_every_method(method: str) -> None:
+    torch.manual_seed(0)
+    model = build_cooperative("pointpillars", method, "tiny").eval()
+    clouds, poses, valid = _lidar_batch()
+    with torch.no_grad():
+        out = model(clouds, poses, valid)
+        res = model.predict(out, poses, valid, score_threshold=0.05)
+        # an absent agent's data does not matter
+        clouds[0][-1] = torch.full((100, 4), 7.0)
+        out2 = model(clouds, poses, valid)
+    assert out["dynamic"].shape == (1, 2, 256, 256) and out["static"].shape == (1, 3, 256, 256)
+    assert out["det_cls"].shape == (1, 2, 128, 128) and out["fused"].shape == (1, 64, 32, 32)
+    assert torch.equal(out["dynamic"], out2["dynamic"])
+    assert set(res) == {"vehicle", "road", "lane", "boxes"} and res["vehicle"].shape == (1, 256, 256)
+    assert res["boxes"][0].shape[1] == 6
+
+
+def test_camera_pipeline_rejects_early() -> None:
+    with pytest.raises(ValueError, match="LiDAR"):
+        build_cooperative("sinbevt", "early", "tiny")
+
+
+def test_describe_models_tiny() -> None:
+    rows = describe_models("tiny")
+    names = [r["name"] for r in rows]
+    for n in [*ENCODERS, *FUSION, "late", "early", "heads-lidar", "heads-camera"]:
+        assert n in names
+    by = {r["name"]: r for r in rows}
+    assert by["pointpillars"]["output"] == [1, 64, 32, 32]
+    assert by["fcooper"]["output"] == [1, 64, 32, 32]
+    assert by["heads-lidar"]["stages"][2]["shape"] == [1, 16, 256, 256]
+    assert all(r["params"] >= 0 for r in rows)
+    json.dumps(rows)
+    table = format_models_table(rows)
+    assert "pointpillars" in table and "cobevt" in table and "bracket" in table
+    assert registry.format_models_table([]).startswith("name")

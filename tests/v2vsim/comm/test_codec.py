@@ -1,0 +1,254 @@
+"""Wire format: exact round trips, and every malformed input rejected with its reason."""
+
+from __future__ import annotations
+
+import struct
+import zlib
+
+import numpy as np
+import pytest
+
+from v2vsim.comm.codec import (
+    REASONS,
+    Message,
+    RejectedMessage,
+    decode,
+    encode,
+)
+
+RUN = "run-7"
+SENDERS = {"cav1", "cav2"}
+
+
+def features(seed: int = 0, shape: tuple[int, ...] = (16, 8, 8), **kw) -> Message:
+    rng = np.random.default_rng(seed)
+    return Message(kind="features", run_id=RUN, sender_id="cav1", frame=42, capture_time=4.2,
+                   sender_pose=(10.5, -3.25, 0.0, 1.2345678901234567),
+                   payload=rng.standard_normal(shape).astype(np.float32), **kw)
+
+
+def points(seed: int = 0) -> Message:
+    rng = np.random.default_rng(seed)
+    return Message(kind="points", run_id=RUN, sender_id="cav2", frame=3, capture_time=0.3,
+                   sender_pose=(1.0, 2.0, 0.0, -0.5), payload=rng.random((500, 4), dtype=np.float32) * 80)
+
+
+def outputs(seed: int = 0) -> Message:
+    rng = np.random.default_rng(seed)
+    boxes = np.concatenate([rng.random((5, 7)) * 10, rng.random((5, 1))], axis=1).astype(np.float32)
+    return Message(kind="outputs", run_id=RUN, sender_id="cav1", frame=9, capture_time=0.9,
+                   sender_pose=(0.0, 0.0, 0.0, 0.0), payload=rng.random((3, 16, 16), dtype=np.float32),
+                   extras={"boxes": boxes})
+
+
+def reason(data: bytes, **kw) -> str:
+    with pytest.raises(RejectedMessage) as ei:
+        decode(data, **kw)
+    assert ei.value.reason in REASONS
+    return ei.value.reason
+
+
+# ---- round trips -----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("compression", ["none", "zlib"])
+@pytest.mark.parametrize("signed", [False, True])
+def test_round_trip_features(compression: str, signed: bool) -> None:
+    key = b"k" * 32 if signed else None
+    msg = features(compression=compression, channel_compression=16)
+    out = decode(encode(msg, key), key=key, known_senders=SENDERS, expected={"features": (16, None, 8)},
+                 run_id=RUN)
+    assert out.kind == "features" and out.run_id == RUN and out.sender_id == "cav1"
+    assert out.frame == 42 and out.capture_time == 4.2 and out.sender_pose == msg.sender_pose
+    assert out.compression == compression and out.channel_compression == 16
+    assert out.dtype == "float16" and out.shape == (16, 8, 8)
+    np.testing.assert_array_equal(out.payload, msg.payload.astype(np.float16))  # exact after the cast
+    np.testing.assert_allclose(out.payload, msg.payload, rtol=1e-3, atol=1e-3)
+    assert out.payload.flags.writeable
+
+
+def test_round_trip_points_exact() -> None:
+    msg = points()
+    out = decode(encode(msg), expected={"points": (None, 4)})
+    assert out.dtype == "float32"
+    np.testing.assert_array_equal(out.payload, msg.payload)
+
+
+def test_round_trip_outputs_with_boxes() -> None:
+    msg = outputs()
+    data = encode(msg)
+    out = decode(data, expected={"outputs": (3, 16, 16), "outputs.boxes": (None, 8)})
+    assert out.dtype == "float16" and set(out.extras) == {"boxes"}
+    np.testing.assert_allclose(out.payload, msg.payload, atol=1e-3)
+    np.testing.assert_array_equal(out.extras["boxes"], msg.extras["boxes"])
+
+
+def test_unicode_ids_and_empty_points() -> None:
+    msg = Message(kind="points", run_id="rün", sender_id="cav-ä", frame=0, capture_time=0.0,
+                  sender_pose=(0, 0, 0, 0), payload=np.zeros((0, 4), np.float32))
+    out = decode(encode(msg), known_senders={"cav-ä"})
+    assert out.run_id == "rün" and out.shape == (0, 4)
+
+
+def test_size_is_header_plus_float16_payload() -> None:
+    data = encode(features(shape=(64, 32, 32)))
+    assert 64 * 32 * 32 * 2 < len(data) < 64 * 32 * 32 * 2 + 200
+    z = encode(Message(**{**features(shape=(64, 32, 32)).__dict__, "payload": np.zeros((64, 32, 32)),
+                          "compression": "zlib"}))
+    assert len(z) < len(data) / 20
+
+
+def test_encode_refuses_non_finite_and_float16_overflow() -> None:
+    bad = features()
+    bad.payload[0, 0, 0] = np.nan
+    with pytest.raises(ValueError):
+        encode(bad)
+    big = features()
+    big.payload[0, 0, 0] = 1e6  # inf in float16
+    with pytest.raises(ValueError):
+        encode(big)
+
+
+# ---- rejections ------------------------------------------------------------------------------
+
+
+def test_every_strict_prefix_is_truncated() -> None:
+    for msg in (features(shape=(2, 3, 3)), features(shape=(2, 3, 3), compression="zlib")):
+        data = encode(msg)
+        for n in range(len(data)):
+            assert reason(data[:n]) == "truncated", n
+
+
+def test_bad_magic_and_version() -> None:
+    data = bytearray(encode(features()))
+    assert reason(b"XXXX" + bytes(data[4:])) == "bad_magic"
+    data[4] = 2
+    assert reason(bytes(data)) == "bad_version"
+
+
+def test_unknown_kind_and_dtype() -> None:
+    data = bytearray(encode(features()))
+    data[5] = 9  # kind code
+    assert reason(bytes(data)) == "unknown_kind"
+    data = encode(features())
+    # the payload array's dtype byte follows: fixed header, 2 length-prefixed ids, name length 0
+    off = struct.calcsize("<4sBBBBHHIddddd") + 2 + len(RUN) + 2 + len("cav1") + 1
+    assert data[off] == 1  # float16
+    for code, want in ((7, "unknown_dtype"), (2, "unknown_dtype")):  # 2 = float32: wrong for features
+        patched = bytearray(data)
+        patched[off] = code
+        assert reason(bytes(patched)) == want
+
+
+def test_shape_and_size_mismatch() -> None:
+    data = encode(features(shape=(16, 8, 8)))
+    assert reason(data, expected={"features": (64, 8, 8)}) == "shape_mismatch"
+    assert reason(data, expected={"features": (16, 8)}) == "shape_mismatch"
+    assert reason(data, expected={"points": (None, 4)}) == "unexpected_kind"
+    assert reason(data + b"\0") == "size_mismatch"  # trailing byte
+    # header claims a different shape than the payload carries
+    small = encode(features(shape=(16, 8, 4)))
+    head = struct.calcsize("<4sBBBBHHIddddd") + 2 + len(RUN) + 2 + len("cav1") + 1 + 2
+    assert struct.unpack_from("<3I", small, head) == (16, 8, 4)
+    patched = bytearray(small)
+    struct.pack_into("<3I", patched, head, 16, 8, 8)
+    assert reason(bytes(patched)) in ("truncated", "size_mismatch")
+    # an absurd declared size is refused before allocating
+    struct.pack_into("<3I", patched, head, 0xFFFFFFFF, 0xFFFFFFFF, 8)
+    assert reason(bytes(patched)) == "size_mismatch"
+
+
+def test_zlib_bomb_and_garbage_are_rejected() -> None:
+    msg = features(shape=(2, 2, 2), compression="zlib")
+    data = encode(msg)
+    body = zlib.compress(msg.payload.astype(np.float16).tobytes(), 1)
+    head = data[:len(data) - len(body) - 4]
+    assert head + struct.pack("<I", len(body)) + body == data
+    bomb = zlib.compress(b"\0" * 10_000_000)
+    assert reason(head + struct.pack("<I", len(bomb)) + bomb) == "size_mismatch"
+    junk = b"not zlib at all"
+    assert reason(head + struct.pack("<I", len(junk)) + junk) == "decompress_error"
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
+def test_non_finite_values(value: float) -> None:
+    for msg in (features(), points(), outputs()):
+        arr = msg.payload.copy()
+        arr.flat[3] = value
+        bad = Message(**{**msg.__dict__, "payload": arr})
+        assert reason(encode(bad, check_finite=False)) == "non_finite"
+    boxes = outputs().extras["boxes"].copy()
+    boxes[1, 2] = value
+    bad = Message(**{**outputs().__dict__, "extras": {"boxes": boxes}})
+    assert reason(encode(bad, check_finite=False)) == "non_finite"
+    pose = Message(**{**features().__dict__, "sender_pose": (value, 0.0, 0.0, 0.0)})
+    assert reason(encode(pose)) == "non_finite"
+
+
+def test_unknown_sender_and_wrong_run() -> None:
+    data = encode(features())
+    assert reason(data, known_senders={"cav2"}) == "unknown_sender"
+    assert reason(data, run_id="other-run") == "wrong_run"
+    assert decode(data, known_senders=SENDERS, run_id=RUN).sender_id == "cav1"
+
+
+def test_hmac_good_bad_missing() -> None:
+    key = b"secret-key-0123456789"
+    signed = encode(features(), key)
+    assert decode(signed, key=key).frame == 42
+    assert decode(signed).frame == 42  # no key configured: the tag is not checked
+    assert reason(encode(features()), key=key) == "unsigned"
+    assert reason(signed, key=b"another key") == "bad_signature"
+    for i in (6, 30, len(signed) // 2, len(signed) - 40, len(signed) - 1):  # header, payload, tag
+        flipped = bytearray(signed)
+        flipped[i] ^= 0x10
+        assert reason(bytes(flipped), key=key) in ("bad_signature", "bad_header"), i
+    # dropping the signed flag does not sneak an unsigned message past a key holder
+    stripped = bytearray(signed[:-32])
+    stripped[6] &= ~0x01
+    assert reason(bytes(stripped), key=key) == "unsigned"
+
+
+def test_fuzz_only_rejected_message() -> None:
+    rng = np.random.default_rng(1234)
+    key = b"fuzz-key"
+    bases = [(encode(features(shape=(4, 4, 4))), None), (encode(features(shape=(4, 4, 4), compression="zlib")), None),
+             (encode(points()), None), (encode(outputs()), None), (encode(outputs(), key), key)]
+    outcomes = {"ok": 0, "rejected": 0}
+    for i in range(3000):
+        base, k = bases[i % len(bases)]
+        data = bytearray(base)
+        op = rng.integers(4)
+        if op == 0:  # flip a few bytes
+            for j in rng.integers(0, len(data), size=rng.integers(1, 4)):
+                data[j] ^= int(rng.integers(1, 256))
+        elif op == 1:  # truncate
+            data = data[:rng.integers(0, len(data))]
+        elif op == 2:  # insert random bytes
+            j = int(rng.integers(0, len(data)))
+            data[j:j] = rng.bytes(int(rng.integers(1, 9)))
+        else:  # random header bytes
+            for j in rng.integers(0, min(80, len(data)), size=3):
+                data[j] = int(rng.integers(0, 256))
+        try:
+            decode(bytes(data), key=k, known_senders=SENDERS, expected={"features": (4, 4, 4), "points": (None, 4),
+                                                                       "outputs": (3, 16, 16)})
+            outcomes["ok"] += 1
+        except RejectedMessage as e:
+            assert e.reason in REASONS
+            assert not e.detail.startswith("internal"), e.detail  # an explicit check caught it, not the net
+            outcomes["rejected"] += 1
+    assert outcomes["rejected"] > 2000
+    for junk in (b"", b"V2VS", b"V2VS\x01", bytes(1000), rng.bytes(5000)):
+        reason(junk)
+
+
+def test_outputs_with_no_boxes_and_odd_extras() -> None:
+    msg = Message(kind="outputs", run_id=RUN, sender_id="cav1", frame=1, capture_time=0.1,
+                  sender_pose=(0, 0, 0, 0), payload=np.zeros((2, 4, 4)),
+                  extras={"boxes": np.zeros((0, 8)), "big_endian": np.arange(3, dtype=">f4")})
+    out = decode(encode(msg), expected={"outputs": (2, 4, 4), "outputs.boxes": (None, 8)})
+    assert out.extras["boxes"].shape == (0, 8)
+    np.testing.assert_array_equal(out.extras["big_endian"], [0, 1, 2])
+    with pytest.raises(ValueError):
+        encode(Message(**{**msg.__dict__, "extras": {"": np.zeros(2)}}))

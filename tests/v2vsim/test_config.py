@@ -1,0 +1,91 @@
+"""Scenario YAML: defaults, overrides and the errors a user sees (file, key path, what is allowed)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from v2vsim.config import ConfigError, load_scenario
+
+REPO = Path(__file__).resolve().parents[2]
+INTERSECTION = REPO / "scenarios" / "intersection.yaml"
+
+
+def _write(tmp_path: Path, text: str) -> Path:
+    p = tmp_path / "s.yaml"
+    p.write_text(text)
+    return p
+
+
+def test_defaults_and_immutability(tmp_path: Path) -> None:
+    sc = load_scenario(_write(tmp_path, "traffic: {backend: highway-env}\n"))
+    assert sc.seed == 0 and sc.rate_hz == 10 and sc.frames == 200
+    assert sc.cavs.count == 4 and sc.bev.cells == 256 and sc.comm.bandwidth_mbps == 27
+    assert sc.sensors.lidar.vertical_fov_deg == (-25.0, 5.0)
+    assert sc.perception.methods[-1] == "cobevt"
+    with pytest.raises(AttributeError):
+        sc.seed = 3  # type: ignore[misc]
+
+
+def test_override_parses_yaml_scalars(tmp_path: Path) -> None:
+    p = _write(tmp_path, "traffic: {backend: highway-env}\n")
+    sc = load_scenario(p, ["comm.drop.p=0.3", "comm.bandwidth_mbps=null", "perception.methods=[none, cobevt]",
+                           "output.rerun=false"])
+    assert sc.comm.drop.p == 0.3 and sc.comm.bandwidth_mbps is None
+    assert sc.perception.methods == ("none", "cobevt") and sc.output.rerun is False
+
+
+@pytest.mark.parametrize(
+    ("text", "overrides", "expect"),
+    [
+        ("cavs: {count: 0}\n", [], ["cavs.count", "1..16"]),
+        ("comm: {latency_ms: {mean: -5}}\n", [], ["comm.latency_ms.mean", ">= 0"]),
+        ("comm: {drop: {p: 1.5}}\n", [], ["comm.drop.p", "0..1"]),
+        ("comm: {dorp: {p: 0.1}}\n", [], ["comm.dorp", "did you mean 'drop'"]),
+        ("sensors: {lidar: {chanels: 16}}\n", [], ["sensors.lidar.chanels", "did you mean 'channels'"]),
+        ("seed: abc\n", [], ["seed", "integer"]),
+        ("rate_hz: [1]\n", [], ["rate_hz", "number"]),
+        ("traffic: {backend: carla}\n", [], ["traffic.backend", "'sumo' | 'highway-env'"]),
+        ("traffic: {backend: sumo, net: missing.net.xml}\n", [], ["traffic.net", "file not found"]),
+        ("perception: {modality: camera}\n", [], ["perception.encoder", "sinbevt, lara"]),
+        ("seed: 1\n", ["comm.drop.p=2"], ["comm.drop.p", "0..1"]),
+        ("seed: 1\n", ["comm.nope=1"], ["comm.nope", "unknown key"]),
+        ("seed: [1\n", [], ["not valid YAML", "line"]),
+        ("- a\n- b\n", [], ["top level must be a mapping"]),
+    ],
+)
+def test_bad_input_names_file_key_and_allowed(tmp_path: Path, text: str, overrides: list[str],
+                                              expect: list[str]) -> None:
+    p = _write(tmp_path, "traffic: {backend: highway-env}\n" + text if "traffic" not in text and "- a" not in text
+               else text)
+    with pytest.raises(ConfigError) as e:
+        load_scenario(p, overrides)
+    msg = str(e.value)
+    assert str(p) in msg
+    for part in expect:
+        assert part in msg, msg
+
+
+def test_missing_scenario_file(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="not found"):
+        load_scenario(tmp_path / "nope.yaml")
+
+
+def test_cli_bad_yaml_exits_2_without_traceback(tmp_path: Path) -> None:
+    p = _write(tmp_path, "cavs: {count: 99}\n")
+    r = subprocess.run([sys.executable, "-m", "v2vsim.cli", "frame", str(p), "--at", "1", "--out", str(tmp_path)],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2
+    assert "cavs.count" in r.stderr and "Traceback" not in r.stderr
+    r = subprocess.run([sys.executable, "-m", "v2vsim.cli", "run", str(INTERSECTION), "--set", "comm.drop.p=7"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "comm.drop.p" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_shipped_scenarios_load() -> None:
+    for path in sorted((REPO / "scenarios").glob("*.yaml")):
+        sc = load_scenario(path)
+        assert sc.name

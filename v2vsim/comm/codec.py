@@ -1,0 +1,347 @@
+"""The V2V wire format (DESIGN.md "V2V message"): a versioned binary header and array payload.
+
+Layout (little endian), version 1::
+
+    fixed   "<4sBBBBHHIddddd" : magic b"V2VS", version, kind, flags, compression,
+                               channel_compression, n_arrays, frame, capture_time, x, y, z, yaw
+    run id  "<H" length + utf-8 bytes
+    sender  "<H" length + utf-8 bytes
+    arrays  n_arrays x ("<B" name length + utf-8 name, "<BB" dtype, ndim, "<ndim I" shape)
+    payload "<I" length + the arrays' bytes back to back (zlib-compressed as one block if compressed)
+    tag     32 bytes hmac-sha256 over everything before it (only when flags & FLAG_SIGNED)
+
+Array 0 is the message's `payload`; the others are `extras` (late-fusion boxes, say).
+
+Kinds and their primary payload:
+  * "features": BEV feature map (C, H, W), float16 on the wire.
+  * "points":   raw points for early fusion (P, 4) x, y, z, intensity, float32.
+  * "outputs":  per-CAV outputs for late fusion: segmentation probabilities (K, H, W) float16,
+                plus extras such as "boxes" (N, 8) float32 (x, y, z, l, w, h, yaw, score).
+
+`channel_compression` is the learned channel-reduction ratio of CoBEVT Table 4 (8x-64x):
+the 1x1-conv encoder/decoder pair lives in models/, so a "features" payload with ratio r
+already carries C/r channels; the header only records r so the receiver picks the matching
+decoder. 1 means off. Lossless `compression` ("zlib") is separate and applies to the payload.
+
+A message that fails any check raises `RejectedMessage(reason)` and nothing else, so a
+receiving process can count it and carry on.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import math
+import struct
+import zlib
+from collections.abc import Collection, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+MAGIC = b"V2VS"
+VERSION = 1
+FLAG_SIGNED = 0x01
+_KNOWN_FLAGS = FLAG_SIGNED
+TAG_LEN = 32  # hmac-sha256
+MAX_PAYLOAD_BYTES = 1 << 30  # declared sizes above this are refused before any allocation
+MAX_NDIM = 8
+
+Kind = Literal["features", "points", "outputs"]
+Compression = Literal["none", "zlib"]
+
+KIND_CODES: dict[str, int] = {"features": 1, "points": 2, "outputs": 3}
+_KIND_NAMES = {v: k for k, v in KIND_CODES.items()}
+COMPRESSION_CODES: dict[str, int] = {"none": 0, "zlib": 1}
+_COMPRESSION_NAMES = {v: k for k, v in COMPRESSION_CODES.items()}
+DTYPE_CODES: dict[str, int] = {"float16": 1, "float32": 2}
+_DTYPE_NAMES = {v: k for k, v in DTYPE_CODES.items()}
+# The wire dtype of each kind's primary payload; extras may be float16 or float32.
+KIND_DTYPES: dict[str, str] = {"features": "float16", "points": "float32", "outputs": "float16"}
+
+_FIXED = struct.Struct("<4sBBBBHHIddddd")
+_U8 = struct.Struct("<B")
+_U16 = struct.Struct("<H")
+_U32 = struct.Struct("<I")
+
+ShapeSpec = tuple[int | None, ...]
+"""An expected shape: a fixed length, each entry an exact size or None for 'any'."""
+
+REASONS = ("truncated", "bad_magic", "bad_version", "bad_header", "unknown_kind", "unknown_dtype",
+           "unexpected_kind", "shape_mismatch", "size_mismatch", "decompress_error", "non_finite",
+           "unknown_sender", "wrong_run", "unsigned", "bad_signature")
+
+
+class RejectedMessage(Exception):
+    """A received message failed validation; `reason` is one of REASONS (a stable counter key)."""
+
+    def __init__(self, reason: str, detail: str = "") -> None:
+        super().__init__(f"{reason}: {detail}" if detail else reason)
+        self.reason = reason
+        self.detail = detail
+
+
+@dataclass(frozen=True, eq=False)
+class Message:
+    """One V2V message. `dtype` and `shape` describe `payload` and are derived from it."""
+
+    kind: Kind
+    run_id: str
+    sender_id: str
+    frame: int
+    capture_time: float  # seconds in the run's clock (simulated seconds under lockstep)
+    sender_pose: tuple[float, float, float, float]  # (x, y, z, yaw), world frame, as the sender knows it
+    payload: np.ndarray
+    compression: Compression = "none"
+    channel_compression: int = 1
+    extras: Mapping[str, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def dtype(self) -> str:
+        return str(self.payload.dtype)
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return tuple(self.payload.shape)
+
+
+def _all_finite(a: np.ndarray) -> bool:
+    """np.isfinite(a).all(), but on float16 via the exponent bits (numpy's float16 ufuncs are slow)."""
+    if a.size == 0:
+        return True
+    if a.dtype == np.float16:
+        return int((a.view(np.uint16) & 0x7FFF).max()) < 0x7C00
+    return bool(np.isfinite(a).all())
+
+
+def _utf8(s: str, what: str, limit: int) -> bytes:
+    b = s.encode("utf-8")
+    if len(b) > limit:
+        raise ValueError(f"{what} longer than {limit} bytes: {s[:40]!r}...")
+    return b
+
+
+def encode(msg: Message, key: bytes | None = None, *, check_finite: bool = True) -> bytes:
+    """Serialise `msg` (casting the payload to its kind's wire dtype); sign it when `key` is given.
+
+    Raises ValueError for a message that the receiver would reject anyway (non-finite values
+    after the cast, an unknown kind); `check_finite=False` is for tests that need such bytes.
+    """
+    if msg.kind not in KIND_CODES:
+        raise ValueError(f"unknown kind {msg.kind!r}; allowed: {', '.join(KIND_CODES)}")
+    if msg.compression not in COMPRESSION_CODES:
+        raise ValueError(f"unknown compression {msg.compression!r}; allowed: {', '.join(COMPRESSION_CODES)}")
+    if not 1 <= int(msg.channel_compression) <= 0xFFFF:
+        raise ValueError(f"channel_compression must be 1..65535, got {msg.channel_compression}")
+    if not 0 <= int(msg.frame) <= 0xFFFFFFFF:
+        raise ValueError(f"frame must fit in uint32, got {msg.frame}")
+    with np.errstate(over="ignore"):  # an overflow to inf is caught by the finiteness check below
+        primary = np.asarray(msg.payload, dtype=KIND_DTYPES[msg.kind])
+    arrays: list[tuple[str, np.ndarray]] = [("", primary)]
+    for name, arr in msg.extras.items():
+        if not name:
+            raise ValueError("extra arrays need a non-empty name")
+        a = np.asarray(arr)
+        if a.dtype not in (np.float16, np.float32):
+            with np.errstate(over="ignore"):
+                a = a.astype(np.float32)
+        arrays.append((name, a))
+    if len(arrays) > 0xFFFF:
+        raise ValueError("too many extra arrays")
+
+    parts: list[bytes | memoryview] = []
+    x, y, z, yaw = (float(v) for v in msg.sender_pose)
+    flags = FLAG_SIGNED if key is not None else 0
+    parts.append(_FIXED.pack(MAGIC, VERSION, KIND_CODES[msg.kind], flags, COMPRESSION_CODES[msg.compression],
+                             int(msg.channel_compression), len(arrays), int(msg.frame),
+                             float(msg.capture_time), x, y, z, yaw))
+    for text, what in ((msg.run_id, "run id"), (msg.sender_id, "sender id")):
+        b = _utf8(text, what, 0xFFFF)
+        parts += [_U16.pack(len(b)), b]
+    blobs: list[memoryview] = []
+    for name, a in arrays:
+        if a.ndim > MAX_NDIM or any(d > 0xFFFFFFFF for d in a.shape):
+            raise ValueError(f"array {name or 'payload'} shape {a.shape} not representable")
+        if check_finite and not _all_finite(a):
+            raise ValueError(f"array {name or 'payload'} has NaN/Inf values (after the cast to {a.dtype})")
+        nb = _utf8(name, "extra name", 0xFF)
+        parts += [_U8.pack(len(nb)), nb, struct.pack(f"<BB{a.ndim}I", DTYPE_CODES[a.dtype.name], a.ndim, *a.shape)]
+        le = np.ascontiguousarray(a.astype(a.dtype.newbyteorder("<"), copy=False))  # no copy on x86/arm
+        blobs.append(memoryview(le.reshape(-1).view(np.uint8)))
+    body: bytes | memoryview = blobs[0] if len(blobs) == 1 else b"".join(blobs)
+    if msg.compression == "zlib":
+        body = zlib.compress(body, 1)  # level 1: float payloads gain little from harder work
+    parts += [_U32.pack(len(body)), body]
+    data = b"".join(parts)
+    if key is not None:
+        data += hmac.new(key, data, hashlib.sha256).digest()
+    return data
+
+
+class _Reader:
+    """Bounds-checked cursor: running off the end is 'truncated', never an IndexError."""
+
+    def __init__(self, data: bytes | memoryview, end: int) -> None:
+        self.data = data
+        self.pos = 0
+        self.end = end
+
+    def take(self, n: int) -> memoryview:
+        if n < 0 or self.pos + n > self.end:
+            raise RejectedMessage("truncated", f"need {n} bytes at offset {self.pos}, have {self.end - self.pos}")
+        out = memoryview(self.data)[self.pos:self.pos + n]
+        self.pos += n
+        return out
+
+    def unpack(self, st: struct.Struct) -> tuple:
+        return st.unpack(self.take(st.size))
+
+    def text(self, what: str) -> str:
+        (n,) = self.unpack(_U16)
+        try:
+            return bytes(self.take(n)).decode("utf-8")
+        except UnicodeDecodeError:
+            raise RejectedMessage("bad_header", f"{what} is not utf-8") from None
+
+
+def _shape_ok(shape: tuple[int, ...], spec: ShapeSpec) -> bool:
+    return len(shape) == len(spec) and all(s is None or s == d for d, s in zip(shape, spec, strict=True))
+
+
+def decode(data: bytes | bytearray | memoryview, *, key: bytes | None = None,
+           known_senders: Collection[str] | None = None,
+           expected: Mapping[str, ShapeSpec] | None = None,
+           run_id: str | None = None) -> Message:
+    """Parse and validate one message; raise RejectedMessage(reason) on any problem.
+
+    key: when set, the message must carry a valid hmac-sha256 tag ('unsigned' / 'bad_signature');
+         when None, a tag, if present, is stripped without being checked.
+    known_senders: when set, other sender ids are 'unknown_sender'.
+    expected: kind -> shape spec (None entries are wildcards); extras are checked under
+         "kind.name" keys when present. Kinds missing from the mapping are 'unexpected_kind'.
+    run_id: when set, messages of another run are 'wrong_run'.
+    """
+    try:
+        return _decode(data, key, known_senders, expected, run_id)
+    except RejectedMessage:
+        raise
+    except Exception as e:  # a bug or an input no check foresaw: still a rejection, never a crash
+        raise RejectedMessage("bad_header", f"internal: {type(e).__name__}: {e}") from None
+
+
+def _decode(data: bytes | bytearray | memoryview, key: bytes | None, known_senders: Collection[str] | None,
+            expected: Mapping[str, ShapeSpec] | None, run_id: str | None) -> Message:
+    data = bytes(data) if not isinstance(data, bytes) else data
+    if len(data) < 5:
+        raise RejectedMessage("truncated", f"{len(data)} bytes")
+    if data[:4] != MAGIC:
+        raise RejectedMessage("bad_magic", repr(data[:4]))
+    if data[4] != VERSION:
+        raise RejectedMessage("bad_version", f"version {data[4]}, this build reads {VERSION}")
+    if len(data) < _FIXED.size:
+        raise RejectedMessage("truncated", f"{len(data)} bytes, the fixed header alone is {_FIXED.size}")
+    (_, _, kind_code, flags, comp_code, ch_comp, n_arrays, frame, capture_time,
+     x, y, z, yaw) = _FIXED.unpack_from(data)
+    if flags & ~_KNOWN_FLAGS:
+        raise RejectedMessage("bad_header", f"unknown flags 0x{flags:02x}")
+    signed = bool(flags & FLAG_SIGNED)
+    end = len(data)
+    if signed:
+        if end < _FIXED.size + TAG_LEN:
+            raise RejectedMessage("truncated", "no room for the signature")
+        end -= TAG_LEN
+    # Authenticate before parsing further, so unauthenticated bytes never reach zlib or numpy.
+    if key is not None:
+        if not signed:
+            raise RejectedMessage("unsigned", "comm.auth is on and the message carries no signature")
+        tag = hmac.new(key, data[:end], hashlib.sha256).digest()
+        if not hmac.compare_digest(tag, data[end:]):
+            raise RejectedMessage("bad_signature")
+    if kind_code not in _KIND_NAMES:
+        raise RejectedMessage("unknown_kind", f"code {kind_code}")
+    kind = _KIND_NAMES[kind_code]
+    if comp_code not in _COMPRESSION_NAMES:
+        raise RejectedMessage("bad_header", f"unknown compression code {comp_code}")
+    if ch_comp < 1:
+        raise RejectedMessage("bad_header", "channel_compression 0")
+    if n_arrays < 1:
+        raise RejectedMessage("bad_header", "no payload array")
+    if not all(math.isfinite(v) for v in (capture_time, x, y, z, yaw)):
+        raise RejectedMessage("non_finite", "capture time or pose")
+
+    r = _Reader(data, end)
+    r.pos = _FIXED.size
+    msg_run = r.text("run id")
+    sender = r.text("sender id")
+    if run_id is not None and msg_run != run_id:
+        raise RejectedMessage("wrong_run", f"{msg_run!r} != {run_id!r}")
+    if known_senders is not None and sender not in known_senders:
+        raise RejectedMessage("unknown_sender", repr(sender))
+    if expected is not None and kind not in expected:
+        raise RejectedMessage("unexpected_kind", kind)
+
+    specs: list[tuple[str, np.dtype, tuple[int, ...]]] = []
+    total = 0
+    for i in range(n_arrays):
+        (nlen,) = r.unpack(_U8)
+        try:
+            name = bytes(r.take(nlen)).decode("utf-8")
+        except UnicodeDecodeError:
+            raise RejectedMessage("bad_header", "array name is not utf-8") from None
+        dtype_code, ndim = r.unpack(struct.Struct("<BB"))
+        if dtype_code not in _DTYPE_NAMES:
+            raise RejectedMessage("unknown_dtype", f"code {dtype_code}")
+        dtype = np.dtype(_DTYPE_NAMES[dtype_code]).newbyteorder("<")
+        if i == 0 and dtype.name != KIND_DTYPES[kind]:
+            raise RejectedMessage("unknown_dtype", f"{kind} must be {KIND_DTYPES[kind]}, got {dtype.name}")
+        if ndim > MAX_NDIM:
+            raise RejectedMessage("shape_mismatch", f"ndim {ndim}")
+        shape = tuple(r.unpack(struct.Struct(f"<{ndim}I")))
+        spec_key = kind if i == 0 else f"{kind}.{name}"
+        if expected is not None and spec_key in expected and not _shape_ok(shape, expected[spec_key]):
+            raise RejectedMessage("shape_mismatch", f"{spec_key} shape {shape}, expected {expected[spec_key]}")
+        nbytes = math.prod(shape) * dtype.itemsize
+        total += nbytes
+        if total > MAX_PAYLOAD_BYTES:
+            raise RejectedMessage("size_mismatch", f"declared payload of {total} bytes")
+        specs.append((name, dtype, shape))
+    if len({name for name, _, _ in specs}) != len(specs):
+        raise RejectedMessage("bad_header", "duplicate array names")
+
+    (body_len,) = r.unpack(_U32)
+    body = r.take(body_len)
+    if r.pos != end:
+        raise RejectedMessage("size_mismatch", f"{end - r.pos} trailing bytes")
+    if comp_code == COMPRESSION_CODES["zlib"]:
+        d = zlib.decompressobj()
+        try:
+            raw = d.decompress(body, total + 1)  # bounded: a zlib bomb cannot inflate past the declared size
+        except zlib.error as e:
+            raise RejectedMessage("decompress_error", str(e)) from None
+        if len(raw) != total or not d.eof or d.unconsumed_tail or d.unused_data:
+            raise RejectedMessage("size_mismatch", f"inflated to {len(raw)}+ bytes, header says {total}")
+    else:
+        raw = body
+        if len(raw) != total:
+            raise RejectedMessage("size_mismatch", f"payload {len(raw)} bytes, header says {total}")
+
+    arrays: list[tuple[str, np.ndarray]] = []
+    off = 0
+    for name, dtype, shape in specs:
+        n = math.prod(shape) * dtype.itemsize
+        a = np.frombuffer(raw, dtype=dtype, count=math.prod(shape), offset=off).reshape(shape)
+        a = a.astype(dtype.newbyteorder("="), copy=True)  # own, writable, native-order memory
+        off += n
+        if not _all_finite(a):
+            raise RejectedMessage("non_finite", f"array {name or 'payload'}")
+        arrays.append((name, a))
+    return Message(kind=kind, run_id=msg_run, sender_id=sender, frame=frame, capture_time=capture_time,
+                   sender_pose=(x, y, z, yaw), payload=arrays[0][1],
+                   compression=_COMPRESSION_NAMES[comp_code],  # type: ignore[arg-type]
+                   channel_compression=ch_comp, extras=dict(arrays[1:]))
+
+
+def encoded_size_hint(shape: Sequence[int], dtype: str = "float16") -> int:
+    """Payload bytes of one uncompressed array (for budgeting; the real size is len(encode(...)))."""
+    return math.prod(shape) * np.dtype(dtype).itemsize

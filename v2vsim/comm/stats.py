@@ -1,0 +1,128 @@
+"""Communication counters for metrics.json `comm` (DESIGN.md "metrics.json").
+
+Semantics, so that senders and receivers in different processes can be merged:
+  sent        messages handed to the transport (one per publication and receiving link, as the
+              caller counts them), with their encoded size in bytes;
+  delivered   messages the channel model let through to a receiver;
+  dropped     messages the channel model lost (Bernoulli / Gilbert-Elliott);
+  out_of_range messages not delivered because the link was longer than comm.range_m;
+  stale       delivered messages older than max_age_ms when the receiver would fuse them;
+  rejected    received bytes that failed codec validation (by reason);
+  latency     send-to-fuse time of fused messages, in the run's clock.
+Not thread-safe: update it from the one thread that consumes messages.
+"""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+from typing import Any
+
+import numpy as np
+
+from v2vsim.comm.channel import Delivery
+
+
+class CommStats:
+    """Running counters plus the raw samples percentiles are computed from."""
+
+    def __init__(self) -> None:
+        self.sent = 0
+        self.delivered = 0
+        self.dropped = 0
+        self.out_of_range = 0
+        self.stale = 0
+        self.rejected_reasons: Counter[str] = Counter()
+        self.bytes_sent = 0
+        self.latency_s: list[float] = []
+        self.lost_agents: set[str] = set()
+
+    @property
+    def rejected(self) -> int:
+        return sum(self.rejected_reasons.values())
+
+    def record_sent(self, nbytes: int, copies: int = 1) -> None:
+        """A message of nbytes (len of the encoded bytes) sent `copies` times (e.g. one per link)."""
+        self.sent += copies
+        self.bytes_sent += nbytes * copies
+
+    def record_channel(self, d: Delivery) -> None:
+        """Count the channel model's verdict on one message."""
+        if d.delivered:
+            self.delivered += 1
+        elif d.reason == "dropped":
+            self.dropped += 1
+        else:
+            self.out_of_range += 1
+
+    def record_stale(self) -> None:
+        self.stale += 1
+
+    def record_rejected(self, reason: str) -> None:
+        self.rejected_reasons[reason] += 1
+
+    def record_fused(self, latency_s: float) -> None:
+        """A message reached fusion latency_s after it was sent (seconds in the run's clock)."""
+        self.latency_s.append(float(latency_s))
+
+    def record_lost_agent(self, agent_id: str) -> None:
+        self.lost_agents.add(agent_id)
+
+    def merge(self, other: CommStats) -> CommStats:
+        """Add another process's counters into this one (returns self)."""
+        self.sent += other.sent
+        self.delivered += other.delivered
+        self.dropped += other.dropped
+        self.out_of_range += other.out_of_range
+        self.stale += other.stale
+        self.rejected_reasons.update(other.rejected_reasons)
+        self.bytes_sent += other.bytes_sent
+        self.latency_s.extend(other.latency_s)
+        self.lost_agents |= other.lost_agents
+        return self
+
+    def latency_percentile_ms(self, q: float) -> float | None:
+        if not self.latency_s:
+            return None
+        return round(float(np.percentile(np.asarray(self.latency_s) * 1000.0, q)), 3)
+
+    @property
+    def bytes_per_message(self) -> int:
+        return round(self.bytes_sent / self.sent) if self.sent else 0
+
+    def to_json(self) -> dict[str, Any]:
+        """The metrics.json `comm` object (contract keys first, then extras)."""
+        return {
+            "sent": self.sent,
+            "delivered": self.delivered,
+            "dropped": self.dropped,
+            "stale": self.stale,
+            "rejected": self.rejected,
+            "bytes_per_message": self.bytes_per_message,
+            "latency_ms": {"p50": self.latency_percentile_ms(50), "p95": self.latency_percentile_ms(95)},
+            "out_of_range": self.out_of_range,
+            "bytes_total": self.bytes_sent,
+            "rejected_reasons": dict(sorted(self.rejected_reasons.items())),
+            "lost_agents": sorted(self.lost_agents),
+        }
+
+    def to_state(self) -> dict[str, Any]:
+        """Everything, raw samples included, as plain JSON types (to ship to another process)."""
+        return {"sent": self.sent, "delivered": self.delivered, "dropped": self.dropped,
+                "out_of_range": self.out_of_range, "stale": self.stale,
+                "rejected_reasons": dict(self.rejected_reasons), "bytes_sent": self.bytes_sent,
+                "latency_s": list(self.latency_s), "lost_agents": sorted(self.lost_agents)}
+
+    @classmethod
+    def from_state(cls, state: dict[str, Any]) -> CommStats:
+        s = cls()
+        s.sent, s.delivered, s.dropped = int(state["sent"]), int(state["delivered"]), int(state["dropped"])
+        s.out_of_range, s.stale = int(state["out_of_range"]), int(state["stale"])
+        s.rejected_reasons = Counter({str(k): int(v) for k, v in state["rejected_reasons"].items()})
+        s.bytes_sent = int(state["bytes_sent"])
+        s.latency_s = [float(v) for v in state["latency_s"]]
+        s.lost_agents = set(state["lost_agents"])
+        return s
+
+    def __repr__(self) -> str:
+        return f"CommStats({json.dumps(self.to_json())})"

@@ -1,0 +1,136 @@
+"""Scores for one fusion method over a run (DESIGN.md "metrics.json").
+
+IoU is dataset-level (summed intersections / summed unions over frames, threshold 0.5) with the
+per-frame mean beside it. Vehicle IoU is scored on visible vehicles as in the OPV2V camera track:
+cells of vehicles no CAV saw are left out of both prediction and truth. AP is BEV rotated-box AP
+at IoU 0.5 / 0.7 with detections sorted over the whole run (all-point interpolation).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+THRESHOLD = 0.5
+
+
+@dataclass
+class IouAccumulator:
+    """Sums intersections and unions of boolean masks over frames."""
+
+    inter: int = 0
+    union: int = 0
+    per_frame: list[float] = field(default_factory=list)
+
+    def add(self, pred: np.ndarray, truth: np.ndarray, ignore: np.ndarray | None = None) -> None:
+        if ignore is not None:
+            keep = ~ignore
+            pred, truth = pred & keep, truth & keep
+        i = int(np.count_nonzero(pred & truth))
+        u = int(np.count_nonzero(pred | truth))
+        self.inter += i
+        self.union += u
+        if u:
+            self.per_frame.append(i / u)
+
+    @property
+    def iou(self) -> float | None:
+        return self.inter / self.union if self.union else None
+
+    @property
+    def frame_mean(self) -> float | None:
+        return float(np.mean(self.per_frame)) if self.per_frame else None
+
+
+@dataclass
+class ApAccumulator:
+    """Collects scored BEV boxes (x, y, l, w, yaw) and ground truth per frame; AP at any IoU threshold."""
+
+    frames: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list)  # (det, scores, gt)
+
+    def add(self, det_boxes: np.ndarray, det_scores: np.ndarray, gt_boxes: np.ndarray) -> None:
+        self.frames.append((np.asarray(det_boxes, dtype=np.float64).reshape(-1, 5),
+                            np.asarray(det_scores, dtype=np.float64).reshape(-1),
+                            np.asarray(gt_boxes, dtype=np.float64).reshape(-1, 5)))
+
+    def ap(self, iou_threshold: float, iou_fn: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> float | None:
+        n_gt = sum(len(g) for _, _, g in self.frames)
+        if n_gt == 0:
+            return None
+        scores, hits = [], []
+        for det, sc, gt in self.frames:
+            if len(det) == 0:
+                continue
+            order = np.argsort(-sc, kind="stable")
+            det, sc = det[order], sc[order]
+            taken = np.zeros(len(gt), dtype=bool)
+            ious = iou_fn(det, gt) if len(gt) else np.zeros((len(det), 0))
+            for k in range(len(det)):
+                hit = False
+                if ious.shape[1]:
+                    cand = np.where(taken, -1.0, ious[k])
+                    j = int(np.argmax(cand))
+                    if cand[j] >= iou_threshold:
+                        taken[j] = hit = True
+                scores.append(sc[k])
+                hits.append(hit)
+        if not scores:
+            return 0.0
+        order = np.argsort(-np.asarray(scores), kind="stable")
+        tp = np.cumsum(np.asarray(hits)[order])
+        fp = np.cumsum(~np.asarray(hits)[order])
+        recall = tp / n_gt
+        precision = tp / np.maximum(tp + fp, 1)
+        # all-point interpolation: precision envelope integrated over recall
+        mrec = np.concatenate([[0.0], recall, [1.0]])
+        mpre = np.concatenate([[0.0], precision, [0.0]])
+        mpre = np.maximum.accumulate(mpre[::-1])[::-1]
+        steps = np.where(mrec[1:] != mrec[:-1])[0]
+        return float(np.sum((mrec[steps + 1] - mrec[steps]) * mpre[steps + 1]))
+
+
+@dataclass
+class MethodScore:
+    """Everything metrics.json reports for one method."""
+
+    vehicle: IouAccumulator = field(default_factory=IouAccumulator)
+    vehicle_all: IouAccumulator = field(default_factory=IouAccumulator)
+    road: IouAccumulator = field(default_factory=IouAccumulator)
+    lane: IouAccumulator = field(default_factory=IouAccumulator)
+    boxes: ApAccumulator | None = None
+    fusion_ms: list[float] = field(default_factory=list)
+    bytes: list[int] = field(default_factory=list)
+    frames: int = 0
+
+    def add_segmentation(self, probs: dict[str, np.ndarray], gt: dict[str, np.ndarray]) -> None:
+        """probs: 'vehicle', 'road', 'lane' probability maps; gt: 'dynamic', 'visible', 'road', 'lane' masks."""
+        self.frames += 1
+        veh = probs["vehicle"] >= THRESHOLD
+        self.vehicle.add(veh, gt["visible"], ignore=gt["dynamic"] & ~gt["visible"])
+        self.vehicle_all.add(veh, gt["dynamic"])
+        if "road" in probs:
+            self.road.add(probs["road"] >= THRESHOLD, gt["road"])
+        if "lane" in probs:
+            self.lane.add(probs["lane"] >= THRESHOLD, gt["lane"])
+
+    def to_json(self, iou_fn: Callable[[np.ndarray, np.ndarray], np.ndarray] | None) -> dict:
+        def r(v: float | None) -> float | None:
+            return None if v is None else round(v, 4)
+
+        ap50 = ap70 = None
+        if self.boxes is not None and iou_fn is not None:
+            ap50, ap70 = self.boxes.ap(0.5, iou_fn), self.boxes.ap(0.7, iou_fn)
+        return {
+            "iou_vehicle": r(self.vehicle.iou),
+            "iou_vehicle_frame_mean": r(self.vehicle.frame_mean),
+            "iou_vehicle_all": r(self.vehicle_all.iou),
+            "iou_road": r(self.road.iou),
+            "iou_lane": r(self.lane.iou),
+            "ap50": r(ap50),
+            "ap70": r(ap70),
+            "fusion_ms": r(float(np.mean(self.fusion_ms))) if self.fusion_ms else None,
+            "bytes_per_frame": int(np.mean(self.bytes)) if self.bytes else 0,
+            "frames": self.frames,
+        }
