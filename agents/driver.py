@@ -12,11 +12,9 @@ import sys
 import threading
 import time
 
-from agents.common import AgentArgs, Bus, parse_agent_args, progress_line, run_agent
+from agents.common import START_TIMEOUT_S, AgentArgs, Bus, parse_agent_args, progress_line, run_agent
 from v2vsim.traffic import make_backend
 from v2vsim.world_io import static_to_bytes, world_to_bytes
-
-START_TIMEOUT_S = 300.0  # every agent imports torch and builds its models before it is ready
 
 
 def drive(args: AgentArgs, bus: Bus) -> int:
@@ -26,7 +24,7 @@ def drive(args: AgentArgs, bus: Bus) -> int:
     acks: dict[str, int] = {}
     ack_event = threading.Event()
 
-    def on_ack(payload: bytes, key: str) -> None:
+    def on_ack(sender: str, payload: bytes) -> None:
         try:
             doc = json.loads(payload)
             acks[str(doc["ego"])] = int(doc["frame"])
@@ -38,8 +36,9 @@ def drive(args: AgentArgs, bus: Bus) -> int:
     try:
         world = backend.reset()
         bus.serve("static", static_to_bytes(backend.static))
-        bus.subscribe("ack/*", on_ack)
-        expected = {f"cav/{c}" for c in args.cavs} | {f"ego/{e}" for e in egos}
+        bus.subscribe("ack", on_ack)
+        bus.ready()
+        expected = {f"cav.{c}" for c in args.cavs} | {f"ego.{e}" for e in egos}
         bus.wait_alive(expected, START_TIMEOUT_S)
         bus.put("start", json.dumps({"frames": frames, "wall_t0": time.time()}).encode())
         t_start = time.monotonic()
@@ -51,8 +50,8 @@ def drive(args: AgentArgs, bus: Bus) -> int:
                 next_tick = t_start + (k + 1) / sc.rate_hz
                 time.sleep(max(0.0, next_tick - time.monotonic()))
             else:
-                while not all(acks.get(e, -1) >= k for e in egos if bus.is_alive(f"ego/{e}")):
-                    if not any(bus.is_alive(f"ego/{e}") for e in egos):
+                while not all(acks.get(e, -1) >= k for e in egos if bus.is_alive(f"ego.{e}")):
+                    if not any(bus.is_alive(f"ego.{e}") for e in egos):
                         print("driver: every ego process is gone; stopping", file=sys.stderr)
                         return 1
                     ack_event.wait(0.5)

@@ -281,6 +281,7 @@ class LaRa(nn.Module):
         """images [B, M, 3, h, w] in [0, 1], intrinsics [B, M, 3, 3] (pixels), extrinsics [B, M, 4, 4]
         camera-to-agent -> [B, C, F, F] (row 0 = front, column 0 = left)."""
         b, m = images.shape[:2]
+        intrinsics, extrinsics = intrinsics.to(images.dtype), extrinsics.to(images.dtype)
         images, intrinsics = resize_images(images, intrinsics, self.config.image_size)
         x = (images.flatten(0, 1) - self.mean) / self.std
         feat = self.neck(self.resnet(x))  # [B*M, c, h, w]

@@ -24,7 +24,36 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from v2vsim.runner import run
 
     out = Path(args.out) if args.out else Path(scenario.output.dir)
-    return run(scenario, out, frames=args.frames)
+    remote = tuple(c for c in (args.remote_cavs or "").split(",") if c)
+    return run(scenario, out, frames=args.frames, remote_cavs=remote, run_id=args.run_id)
+
+
+def _cmd_agent(args: argparse.Namespace) -> int:
+    load_scenario(args.scenario, args.overrides)  # a clear error before anything starts
+    from agents.cav import main as cav_main
+
+    argv = [args.scenario, "--cav", args.cav, "--run-id", args.run_id, "--cavs", args.cavs, "--egos", args.egos,
+            "--frames", str(args.frames)] + [x for o in args.overrides for x in ("--set", o)]
+    return cav_main(argv)
+
+
+def _cmd_router(args: argparse.Namespace) -> int:
+    import time
+
+    from v2vsim.comm.transport import TransportError, open_session
+    from v2vsim.config import TransportConfig
+
+    try:
+        session = open_session(TransportConfig(mode="router", listen=tuple(args.listen)))  # type: ignore[arg-type]
+    except TransportError as e:
+        print(f"v2vsim: error: {e}", file=sys.stderr)
+        return 2
+    print(f"v2vsim: zenoh router listening on {', '.join(args.listen)} (Ctrl-C to stop)", file=sys.stderr)
+    try:
+        while True:
+            time.sleep(1)
+    finally:
+        session.close()
 
 
 def _cmd_frame(args: argparse.Namespace) -> int:
@@ -69,7 +98,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=None, help="stop after N frames (default: duration_s * rate_hz)")
     p.add_argument("--out", default=None, help="output directory (default: output.dir)")
     p.add_argument("--methods", default=None, help="comma-separated fusion methods, e.g. none,cobevt")
+    p.add_argument("--remote-cavs", default=None, help="CAV ids started on other hosts with `v2vsim agent`")
+    p.add_argument("--run-id", default=None, help="run id (default: random); remote agents must use the same")
     p.set_defaults(func=_cmd_run)
+
+    p = sub.add_parser("agent", help="run one CAV perception agent of a run started elsewhere (across hosts)")
+    _scenario_args(p)
+    p.add_argument("--cav", required=True)
+    p.add_argument("--run-id", required=True)
+    p.add_argument("--cavs", required=True, help="comma-separated CAV ids of the run")
+    p.add_argument("--egos", required=True, help="comma-separated ego ids of the run")
+    p.add_argument("--frames", type=int, default=0)
+    p.set_defaults(func=_cmd_agent)
+
+    p = sub.add_parser("router", help="a zenoh router for runs across hosts (transport.mode: client)")
+    p.add_argument("--listen", action="append", default=None, help="endpoint, e.g. tcp/0.0.0.0:7447")
+    p.set_defaults(func=_cmd_router)
 
     p = sub.add_parser("frame", help="write one frame as files: world.json, LiDAR, camera images, GT masks")
     _scenario_args(p)
@@ -90,6 +134,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if getattr(args, "verb", None) == "router" and not args.listen:
+        args.listen = ["tcp/127.0.0.1:7447"]
     try:
         return int(args.func(args) or 0)
     except ConfigError as e:

@@ -149,7 +149,7 @@ class CommConfig:
 
 @dataclass(frozen=True)
 class TransportConfig:
-    mode: Literal["peer", "client"] = "peer"
+    mode: Literal["peer", "client"] = "peer"  # peer: a loopback mesh; client: through transport.connect routers
     connect: tuple[str, ...] = _f((), "zenoh endpoints such as tcp/127.0.0.1:7447")
     listen: tuple[str, ...] = _f((), "zenoh endpoints; empty = a free loopback port")
     clock: Literal["lockstep", "realtime"] = "lockstep"
@@ -186,6 +186,7 @@ class Scenario:
     perception: PerceptionConfig = field(default_factory=PerceptionConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     source: str = field(default="<defaults>", metadata={"internal": True})  # the YAML file
+    overrides: tuple[str, ...] = field(default=(), metadata={"internal": True})  # --set, for child processes
 
     @property
     def frames(self) -> int:
@@ -359,7 +360,7 @@ def load_scenario(path: str | Path, overrides: typing.Sequence[str] = ()) -> Sce
     raw = apply_overrides(raw, overrides)
     loader = _Loader(str(path), path.parent)
     sc = loader.section(Scenario, raw, "")
-    sc = dataclasses.replace(sc, source=str(path))
+    sc = dataclasses.replace(sc, source=str(path), overrides=tuple(overrides))
     _check_cross_fields(sc, loader)
     return sc
 

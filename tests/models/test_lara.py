@@ -22,6 +22,7 @@ SMALL = dict(
     num_latents=32,
     latent_dim=64,
     latent_layers=1,
+    cross_heads=2,
     latent_heads=2,
     query_dim=32,
     out_channels=32,
@@ -115,7 +116,7 @@ def test_overfits_one_batch() -> None:
     opt = torch.optim.Adam([*m.parameters(), *head.parameters()], lr=1e-3)
     loss_fn = nn.BCEWithLogitsLoss()
     first = None
-    for _ in range(500):
+    for _ in range(400):
         loss = loss_fn(head(m(images, intr, extr)), target)
         opt.zero_grad()
         loss.backward()

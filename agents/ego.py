@@ -1,0 +1,298 @@
+"""Ego fusion process: receives every CAV's messages, puts them through the channel model, warps
+them into its own frame with the sender's pose at capture time, fuses with every method under
+test, and scores each against ground truth. Writes metrics.json, report.md, plots and the Rerun
+recording when the run ends, is interrupted, or loses agents.
+
+lockstep: frame k is fused once every live CAV's frame-k messages are in (a CAV that dies is
+noticed through zenoh liveliness within milliseconds, or after HANG_TIMEOUT_S if it hangs).
+realtime: frame k is fused when its world arrives, with whatever has arrived by then.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import sys
+import threading
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from agents.cav import read_key
+from agents.common import START_TIMEOUT_S, AgentArgs, Bus, Stop, parse_agent_args, progress_line, run_agent
+from models.nms import rotated_iou_matrix
+from v2vsim.comm.codec import RejectedMessage, decode
+from v2vsim.comm.inbox import Inbox, distance
+from v2vsim.comm.stats import CommStats
+from v2vsim.geometry import Pose, relative_pose
+from v2vsim.gt import bev_ground_truth, gt_boxes
+from v2vsim.metrics import ApAccumulator, MethodScore
+from v2vsim.perception import FusionInputs, build_agent_encoder, build_method_models, predict, weights_path
+from v2vsim.recording import Recorder
+from v2vsim.report import RunSummary, write_outputs
+from v2vsim.sensors.scene import build_map_assets
+from v2vsim.world import WorldState
+from v2vsim.world_io import static_from_bytes, world_from_bytes
+
+HANG_TIMEOUT_S = 60.0  # a live CAV that sends nothing for this long is treated as lost
+
+
+def iou_fn(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return rotated_iou_matrix(torch.from_numpy(a).float(), torch.from_numpy(b).float()).numpy()
+
+
+class Mailbox:
+    """Raw messages by (kind, frame, sender), filled on zenoh's thread, read on the main thread."""
+
+    def __init__(self) -> None:
+        self.cond = threading.Condition()
+        self.raw: dict[tuple[str, int], dict[str, bytes]] = defaultdict(dict)
+        self.unframed: list[tuple[str, str, bytes]] = []  # could not even read a frame number
+        self.worlds: dict[int, bytes] = {}
+        self.done = False
+
+    def put(self, kind: str, sender: str, data: bytes) -> None:
+        frame = _peek_frame(kind, data)
+        with self.cond:
+            if frame is None:
+                self.unframed.append((kind, sender, data))
+            else:
+                self.raw[(kind, frame)][sender] = data
+            self.cond.notify_all()
+
+
+def _peek_frame(kind: str, data: bytes) -> int | None:
+    """The frame a message claims, without validating it (validation happens at decode)."""
+    if kind == "vis":
+        try:
+            return int(json.loads(data)["frame"])
+        except (ValueError, KeyError, TypeError):
+            return None
+    try:
+        return int(struct.unpack_from("<I", data, 12)[0])  # codec fixed header: frame after 12 bytes
+    except struct.error:
+        return None
+
+
+def ego_loop(args: AgentArgs, bus: Bus) -> int:
+    torch.set_num_threads(1)
+    sc = args.scenario
+    me = args.cav
+    methods = sc.perception.methods
+    lidar = sc.perception.modality == "lidar"
+    key = read_key(sc.comm.auth.key_file)
+    kinds = ["features"] + (["points"] if "early" in methods and lidar else []) + (
+        ["outputs"] if "late" in methods else [])
+    encoder = build_agent_encoder(sc)
+    models = build_method_models(sc, encoder, tuple(m for m in methods if lidar or m != "early"))
+    static = static_from_bytes(bus.fetch("static", "main", START_TIMEOUT_S))
+    assets = build_map_assets(static)
+
+    box = Mailbox()
+    for kind in [*kinds, "vis"]:
+        bus.subscribe(kind, lambda sender, data, kind=kind: box.put(kind, sender, data))
+    bus.subscribe("world", lambda sender, data: _put_world(box, data))
+    bus.subscribe("done", lambda sender, data: _set_done(box))
+    lost: dict[str, int] = {}
+    bus.on_lost(lambda who: _notify(box))
+
+    stats = CommStats()
+    inboxes = {k: Inbox(sc.comm, sc.seed, me, k, stats if k == "features" else CommStats()) for k in kinds}
+    scores = {m: MethodScore(boxes=ApAccumulator() if lidar else None) for m in models}
+    ego_poses: dict[int, Pose] = {}
+    out_dir = Path(args.out) / ("" if me == args.egos[0] else f"ego_{me}")
+    recorder = Recorder(out_dir / "recording.rrd", sc, list(models)) if sc.output.rerun else None
+    summary = RunSummary(scenario=sc, ego=me, methods=list(models), untrained=weights_path(sc) is None)
+    bus.ready()
+    t_start = time.monotonic()
+    frames_done = 0
+    status = "complete"
+    try:
+        for k in range(args.frames):
+            world = _wait_world(box, k)
+            if world is None:
+                status = "ended early (driver finished)"
+                break
+            world = world_from_bytes(world, static)
+            ego_actor = world.actor(me)
+            if ego_actor is None:
+                status = f"ego {me} left the simulation at frame {k}"
+                break
+            ego_poses[k] = ego_actor.pose
+            present = [a.id for a in world.cavs if a.id in args.cavs]
+            if sc.transport.clock == "lockstep":
+                _wait_messages(box, bus, k, present, kinds, lost)
+            for cav in present:
+                if cav not in lost and bus.was_alive(f"cav.{cav}") and not bus.is_alive(f"cav.{cav}") \
+                        and not _left(box, cav):
+                    lost[cav] = k
+            for cav in lost:
+                stats.record_lost_agent(cav)
+            inp, visible = _collect(box, k, world, me, kinds, inboxes, ego_poses, key, args, stats)
+            gt = bev_ground_truth(world, me, sc.bev, visible, assets=assets)
+            boxes_gt, ids = gt_boxes(world, me, sc.bev)
+            boxes_gt = boxes_gt[[i in visible for i in ids]] if len(ids) else boxes_gt
+            preds = {}
+            for m, model in models.items():
+                pred = predict(m, model, inp, sc.bev.cells)
+                if pred is None:
+                    continue
+                preds[m] = pred
+                s = scores[m]
+                s.add_segmentation(pred.probs, gt)
+                s.fusion_ms.append(pred.ms)
+                s.bytes.append(_bytes_for(m, inboxes))
+                if s.boxes is not None and pred.boxes is not None:
+                    s.boxes.add(pred.boxes[:, :5], pred.boxes[:, 5], boxes_gt)
+            for ib in inboxes.values():
+                ib.take_bytes()
+            if recorder is not None:
+                recorder.log_frame(k, world, me, gt, preds, inp)
+            frames_done = k + 1
+            if sc.transport.clock == "lockstep":
+                bus.put("ack", json.dumps({"ego": me, "frame": k}).encode())
+            progress_line(f"ego {me}", k + 1, args.frames, t_start)
+    except Stop:
+        status = f"interrupted after {frames_done} frames"
+        raise
+    finally:
+        summary.frames = frames_done
+        summary.status = status
+        summary.wall_s = time.monotonic() - t_start
+        summary.lost_agents = dict(lost)
+        write_outputs(out_dir, summary, scores, stats, {k: ib.stats for k, ib in inboxes.items()}, iou_fn)
+        if recorder is not None:
+            recorder.close()
+    return 0
+
+
+def _bytes_for(method: str, inboxes: dict[str, Inbox]) -> int:
+    kind = {"early": "points", "late": "outputs", "none": None}.get(method, "features")
+    return 0 if kind is None else inboxes[kind].bytes_this_frame
+
+
+def _put_world(box: Mailbox, data: bytes) -> None:
+    try:
+        frame = int(json.loads(data)["frame"])
+    except (ValueError, KeyError, TypeError):
+        return
+    with box.cond:
+        box.worlds[frame] = data
+        box.cond.notify_all()
+
+
+def _set_done(box: Mailbox) -> None:
+    with box.cond:
+        box.done = True
+        box.cond.notify_all()
+
+
+def _notify(box: Mailbox) -> None:
+    with box.cond:
+        box.cond.notify_all()
+
+
+def _left(box: Mailbox, cav: str) -> bool:
+    return False  # a CAV whose vehicle left is absent from the world, so it is never expected
+
+
+def _wait_world(box: Mailbox, k: int) -> bytes | None:
+    with box.cond:
+        while k not in box.worlds:
+            if box.done:
+                return None
+            box.cond.wait(0.5)
+        return box.worlds.pop(k)
+
+
+def _wait_messages(box: Mailbox, bus: Bus, k: int, present: list[str], kinds: list[str],
+                   lost: dict[str, int]) -> None:
+    """Lockstep: wait until every live CAV's frame-k messages are in (or it is lost)."""
+    deadline = time.monotonic() + HANG_TIMEOUT_S
+    with box.cond:
+        while True:
+            missing = [c for c in present if c not in lost and not all(
+                c in box.raw.get((kind, k), {}) for kind in [*kinds, "vis"])]
+            dead = [c for c in missing if bus.was_alive(f"cav.{c}") and not bus.is_alive(f"cav.{c}")]
+            for c in dead:
+                lost[c] = k
+                print(f"v2vsim-ego: CAV {c} is gone at frame {k}; fusing the others", file=sys.stderr)
+            if not [c for c in missing if c not in dead]:
+                return
+            if time.monotonic() > deadline:
+                for c in missing:
+                    lost[c] = k
+                    print(f"v2vsim-ego: CAV {c} sent nothing for {HANG_TIMEOUT_S:g} s at frame {k}; "
+                          "treating it as lost", file=sys.stderr)
+                return
+            box.cond.wait(0.2)
+
+
+def _collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str], inboxes: dict[str, Inbox],
+             ego_poses: dict[int, Pose], key: bytes | None, args: AgentArgs,
+             stats: CommStats) -> tuple[FusionInputs, set[str]]:
+    """Decode frame k's messages, pass them through the channel, and gather what is fusable now."""
+    sc = args.scenario
+    realtime = sc.transport.clock == "realtime"
+    now = world.time
+    with box.cond:
+        raw = {kind: box.raw.pop((kind, k), {}) for kind in [*kinds, "vis"]}
+        if realtime:  # late frames' messages arrive whenever they arrive
+            for (kind, f), table in list(box.raw.items()):
+                if f < k and kind in kinds:
+                    raw.setdefault(kind, {}).update({f"{s}@{f}": v for s, v in table.items()})
+                    del box.raw[(kind, f)]
+        unframed, box.unframed = box.unframed, []
+    for _kind, _sender, _data in unframed:
+        stats.record_rejected("truncated")
+    visible: set[str] = set()
+    for data in raw["vis"].values():
+        try:
+            visible.update(str(i) for i in json.loads(data)["ids"])
+        except (ValueError, KeyError, TypeError):
+            stats.record_rejected("bad_header")
+    shapes = {"features": (None, None, None), "points": (None, 4), "outputs": (3, None, None),
+              "outputs.boxes": (None, 6)}
+    for kind in kinds:
+        for _sender, data in raw[kind].items():
+            try:
+                msg = decode(data, key=key, known_senders=args.cavs, expected={kind: shapes[kind],
+                             **({"outputs.boxes": shapes["outputs.boxes"]} if kind == "outputs" else {})},
+                             run_id=args.run_id)
+            except RejectedMessage as e:
+                inboxes[kind].stats.record_rejected(e.reason)
+                if kind != "features":
+                    stats.record_rejected(e.reason)
+                continue
+            ego_then = ego_poses.get(msg.frame, ego_poses[k])
+            send_time = now if realtime else msg.capture_time
+            inboxes[kind].offer(msg, len(data), send_time, distance(msg.sender_pose, ego_then.as_tuple()))
+    ego_pose = ego_poses[k]
+    fusable = {kind: inboxes[kind].ready(now) for kind in kinds}
+    senders = [me] + sorted({s for table in fusable.values() for s in table} - {me})
+    rel = np.zeros((len(senders), 3), np.float32)
+    inp = FusionInputs(senders=senders, rel_poses=rel)
+    for kind, table in fusable.items():
+        for s, msg in table.items():
+            i = senders.index(s)
+            x, y, z, yaw = inboxes[kind].sender_pose(msg)
+            rel[i] = relative_pose(ego_pose, Pose(x, y, z, yaw))
+            if kind == "features":
+                inp.features[s] = msg.payload.astype(np.float32)
+            elif kind == "points":
+                inp.points[s] = msg.payload.astype(np.float32)
+            else:
+                inp.outputs[s] = (msg.payload.astype(np.float32), msg.extras["boxes"].astype(np.float32))
+    return inp, visible
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_agent_args("ego", argv)
+    return run_agent(args, "ego", args.cav, lambda bus: ego_loop(args, bus))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,196 @@
+"""Models as the running simulator uses them: the CAV side (encode, late outputs) and the ego side
+(warp + fuse + decode with every method), built by name from the scenario's `perception` section.
+
+Weights: `perception.weights: auto` loads models/weights/<encoder>_<preset>.pt when it exists;
+without a checkpoint every process builds the same randomly initialised models from the scenario
+seed (so CAV encoders and the ego agree), and the report says the weights are untrained.
+"""
+
+from __future__ import annotations
+
+import time
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from models.fusion.early import merge_points_to_ego
+from models.fusion.late import late_fuse_boxes, late_fuse_probabilities
+from models.heads import decode_detections, resize_logits, segmentation_probabilities
+from models.registry import build_cooperative, build_encoder, is_intermediate
+from v2vsim.config import ConfigError, Scenario
+from v2vsim.sensing import SensorFrame
+
+WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "models" / "weights"
+
+
+def weights_path(sc: Scenario) -> Path | None:
+    """The checkpoint the scenario asks for, or None for seeded random initialisation."""
+    spec = sc.perception.weights
+    if spec == "none":
+        return None
+    if spec == "auto":
+        p = WEIGHTS_DIR / f"{sc.perception.encoder}_{sc.perception.preset}.pt"
+        return p if p.is_file() else None
+    p = Path(spec)
+    if not p.is_absolute():
+        p = Path(sc.source).parent / p
+    if not p.is_file():
+        raise ConfigError(f"{sc.source}: perception.weights: checkpoint not found: {p}")
+    return p
+
+
+def _seed(sc: Scenario, what: str) -> None:
+    torch.manual_seed(sc.seed * 1_000_003 + zlib.crc32(what.encode()))
+
+
+def _load(module: nn.Module, checkpoint: dict | None, prefix: str) -> None:
+    if checkpoint is None:
+        return
+    state = {k[len(prefix):]: v for k, v in checkpoint.items() if k.startswith(prefix)}
+    if state:
+        module.load_state_dict(state)
+
+
+def _checkpoint(sc: Scenario) -> dict | None:
+    p = weights_path(sc)
+    return None if p is None else torch.load(p, map_location="cpu", weights_only=True)
+
+
+def build_agent_encoder(sc: Scenario) -> nn.Module:
+    """The encoder every CAV runs; identical in every process for a given scenario."""
+    _seed(sc, "encoder")
+    enc = build_encoder(sc.perception.encoder, sc.perception.preset, bev_size_m=sc.bev.size_m)
+    _load(enc, _checkpoint(sc), "encoder.")
+    return enc.eval()
+
+
+def build_method_models(sc: Scenario, encoder: nn.Module, methods: tuple[str, ...]) -> dict[str, nn.Module]:
+    """One CooperativePerception per method, all sharing `encoder` (every method fuses the same messages)."""
+    ckpt = _checkpoint(sc)
+    out = {}
+    for m in methods:
+        _seed(sc, f"method:{m}")
+        model = build_cooperative(sc.perception.encoder, m, sc.perception.preset, bev_size_m=sc.bev.size_m)
+        model.encoder = encoder
+        _load(model.fusion, ckpt, f"{m}.fusion.")
+        _load(model.heads, ckpt, f"{m}.heads.")
+        out[m] = model.eval()
+    return out
+
+
+def encoder_inputs(sf: SensorFrame, sc: Scenario) -> list[Tensor] | tuple[Tensor, Tensor, Tensor]:
+    """A SensorFrame as the encoder takes it: body-frame points, or (images, intrinsics, extrinsics)."""
+    if sc.perception.modality == "lidar":
+        return [torch.from_numpy(body_frame_points(sf, sc))]
+    cams = sf.cameras
+    images = torch.from_numpy(cams.images).permute(0, 3, 1, 2).float().div(255.0)[None]  # [1, M, 3, h, w]
+    intr = torch.from_numpy(cams.rig.intrinsics).float()[None]
+    extr = torch.from_numpy(cams.rig.extrinsics).float()[None]
+    return images, intr, extr
+
+
+def body_frame_points(sf: SensorFrame, sc: Scenario) -> np.ndarray:
+    """LiDAR-frame points (origin at the sensor) moved to the body frame (origin on the ground)."""
+    pts = sf.lidar.points.copy()
+    pts[:, 2] += sc.sensors.lidar.height_m
+    return pts
+
+
+@torch.no_grad()
+def encode(encoder: nn.Module, sf: SensorFrame, sc: Scenario) -> np.ndarray:
+    """[C, F, F] float32 BEV features of one CAV in its own frame."""
+    inputs = encoder_inputs(sf, sc)
+    feats = encoder(inputs) if sc.perception.modality == "lidar" else encoder(*inputs)
+    return feats[0].float().numpy()
+
+
+@torch.no_grad()
+def late_outputs(model: nn.Module, features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A CAV's own decoded outputs for late fusion: probabilities [3, S, S] (vehicle, road, lane) and
+    boxes [K, 6] (x, y, l, w, yaw, score) in its body frame."""
+    out = model.heads(torch.from_numpy(features)[None])
+    probs = segmentation_probabilities(out["dynamic"], out["static"])
+    maps = np.stack([probs[k][0].numpy() for k in ("vehicle", "road", "lane")])
+    if "det_cls" in out:
+        boxes = decode_detections(out["det_cls"], out["det_reg"], model.anchors)[0].numpy()
+    else:
+        boxes = np.zeros((0, 6), np.float32)
+    return maps.astype(np.float32), boxes.astype(np.float32)
+
+
+@dataclass
+class FusionInputs:
+    """What reached the ego for one frame, per sender (ego first), all in the sender's own frame."""
+
+    senders: list[str]
+    rel_poses: np.ndarray  # [L, 3] (dx, dy, dyaw) of each sender's capture pose in the ego's body frame
+    features: dict[str, np.ndarray] = field(default_factory=dict)  # sender -> [C, F, F]
+    points: dict[str, np.ndarray] = field(default_factory=dict)  # sender -> [P, 4] body frame
+    outputs: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # sender -> (maps, boxes)
+
+
+@dataclass(frozen=True)
+class Prediction:
+    probs: dict[str, np.ndarray]  # vehicle / road / lane [cells, cells] in the ego grid
+    boxes: np.ndarray | None  # [K, 6] (x, y, l, w, yaw, score) in the ego frame (LiDAR)
+    ms: float  # wall time of fusion + decoding
+
+
+def _stack(inp: FusionInputs, table: dict[str, np.ndarray]) -> tuple[list[str], Tensor]:
+    names = [s for s in inp.senders if s in table]
+    return names, torch.from_numpy(np.stack([table[s] for s in names]))
+
+
+def _poses(inp: FusionInputs, names: list[str]) -> Tensor:
+    idx = [inp.senders.index(s) for s in names]
+    return torch.from_numpy(inp.rel_poses[idx]).float()
+
+
+@torch.no_grad()
+def predict(method: str, model: nn.Module, inp: FusionInputs, cells: int) -> Prediction | None:
+    """Fuse and decode what reached the ego with one method; None when the method has no input
+    (e.g. the ego's own message is missing)."""
+    ego = inp.senders[0]
+    t0 = time.perf_counter()
+    if method == "late":
+        if ego not in inp.outputs:
+            return None
+        names = [s for s in inp.senders if s in inp.outputs]
+        maps = torch.from_numpy(np.stack([inp.outputs[s][0] for s in names]))  # [L, 3, S, S]
+        poses = _poses(inp, names)
+        valid = torch.ones(len(names), dtype=torch.bool)
+        merged = late_fuse_probabilities(maps, poses, valid, model.bev_size_m)  # [3, S, S]
+        merged = resize_logits(merged[None], cells)[0]
+        probs = {k: merged[i].numpy() for i, k in enumerate(("vehicle", "road", "lane"))}
+        boxes = None
+        if model.heads.detection is not None:
+            per = [torch.from_numpy(inp.outputs[s][1]) for s in names]
+            boxes = late_fuse_boxes(per, poses, valid).numpy()
+        return Prediction(probs, boxes, (time.perf_counter() - t0) * 1000)
+    if method == "early":
+        if ego not in inp.points:
+            return None
+        names = [s for s in inp.senders if s in inp.points]
+        clouds = [torch.from_numpy(inp.points[s]) for s in names]
+        merged = merge_points_to_ego(clouds, _poses(inp, names))
+        fused = model.encoder([merged])
+    else:
+        if ego not in inp.features:
+            return None
+        if method == "none" or not is_intermediate(method):
+            fused = torch.from_numpy(inp.features[ego])[None]
+        else:
+            names, feats = _stack(inp, inp.features)  # [L, C, F, F]
+            valid = torch.ones(1, len(names), dtype=torch.bool)
+            fused = model.fuse(feats[None], _poses(inp, names)[None], valid)
+    out = model.heads(fused)
+    dyn, stat = resize_logits(out["dynamic"], cells), resize_logits(out["static"], cells)
+    probs = {k: v[0].numpy() for k, v in segmentation_probabilities(dyn, stat).items()}
+    boxes = None
+    if "det_cls" in out:
+        boxes = decode_detections(out["det_cls"], out["det_reg"], model.anchors)[0].numpy()
+    return Prediction(probs, boxes, (time.perf_counter() - t0) * 1000)

@@ -1,0 +1,158 @@
+"""What a run leaves behind: metrics.json (DESIGN.md contract), report.md and PNG plots."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from v2vsim.comm.stats import CommStats
+from v2vsim.config import Scenario
+from v2vsim.metrics import MethodScore
+
+# CoBEVT paper figures (DESIGN.md "Reference figures"): OPV2V camera IoU vehicle/road/lane, LiDAR AP@0.7.
+PAPER_CAMERA = {"none": (37.7, 57.8, 43.7), "fcooper": (52.5, 60.4, 46.5), "attfuse": (51.9, 60.5, 46.2),
+                "v2vnet": (53.5, 60.2, 47.5), "disconet": (52.9, 60.7, 45.8), "cobevt": (60.4, 63.0, 53.0)}
+PAPER_LIDAR_AP70 = {"late": 0.781, "early": 0.800, "attfuse": 0.815, "fcooper": 0.790, "v2vnet": 0.822,
+                    "cobevt": 0.861}
+
+
+@dataclass
+class RunSummary:
+    scenario: Scenario
+    ego: str
+    methods: list[str]
+    untrained: bool
+    frames: int = 0
+    status: str = "complete"
+    wall_s: float = 0.0
+    lost_agents: dict[str, int] = field(default_factory=dict)  # CAV id -> frame it was lost at
+
+
+def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: CommStats,
+                 comm_by_kind: dict[str, CommStats], iou_fn: Callable | None) -> dict:
+    sc = summary.scenario
+    sim_s = summary.frames / sc.rate_hz
+    comm_doc = comm.to_json()
+    comm_doc["by_kind"] = {k: s.to_json() for k, s in comm_by_kind.items() if k != "features"}
+    return {
+        "scenario": sc.name,
+        "frames": summary.frames,
+        "cavs": sc.cavs.count,
+        "modality": sc.perception.modality,
+        "real_time_factor": round(sim_s / summary.wall_s, 3) if summary.wall_s > 0 else None,
+        "comm": comm_doc,
+        "methods": {m: scores[m].to_json(iou_fn) for m in summary.methods if m in scores},
+        "ego": summary.ego,
+        "status": summary.status,
+        "lost_agents": summary.lost_agents,
+        "encoder": sc.perception.encoder,
+        "preset": sc.perception.preset,
+        "weights": "untrained (seeded random init)" if summary.untrained else sc.perception.weights,
+        "clock": sc.transport.clock,
+    }
+
+
+def _fmt(v: float | int | None, pct: bool = False) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, int):
+        return str(v)
+    return f"{100 * v:.1f}" if pct else f"{v:.3f}"
+
+
+def report_md(doc: dict, summary: RunSummary) -> str:
+    sc = summary.scenario
+    lines = [f"# v2vsim run: {sc.name}", ""]
+    lines.append(f"Status: **{doc['status']}**, {doc['frames']} frames at {sc.rate_hz:g} Hz, {sc.cavs.count} CAVs, "
+                 f"ego {summary.ego}, {sc.perception.modality} / {sc.perception.encoder} ({sc.perception.preset}), "
+                 f"clock {sc.transport.clock}, real-time factor {doc['real_time_factor']}.")
+    if summary.untrained:
+        lines += ["", "**Weights are untrained** (no checkpoint for this encoder/preset; every process uses the same "
+                  "seeded random initialisation). The scores below measure the harness, not the methods: do not "
+                  "compare them with the paper."]
+    if summary.lost_agents:
+        lines += ["", "Lost agents: " + ", ".join(f"{c} (frame {f})" for c, f in sorted(summary.lost_agents.items()))]
+    lines += ["", "## Methods", "",
+              "| method | IoU vehicle (visible) | per-frame mean | IoU vehicle (all) | IoU road | IoU lane "
+              "| AP@0.5 | AP@0.7 | fusion ms | bytes/frame |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
+    for m, r in doc["methods"].items():
+        lines.append(f"| {m} | {_fmt(r['iou_vehicle'], True)} | {_fmt(r['iou_vehicle_frame_mean'], True)} | "
+                     f"{_fmt(r['iou_vehicle_all'], True)} | {_fmt(r['iou_road'], True)} | "
+                     f"{_fmt(r['iou_lane'], True)} | {_fmt(r['ap50'])} | {_fmt(r['ap70'])} | "
+                     f"{_fmt(r['fusion_ms'])} | {r['bytes_per_frame']} |")
+    c = doc["comm"]
+    lat = c["latency_ms"]
+    lines += ["", "## Communication (BEV feature messages, receiver side)", "",
+              f"sent {c['sent']}, delivered {c['delivered']}, dropped {c['dropped']}, out of range "
+              f"{c['out_of_range']}, stale {c['stale']}, rejected {c['rejected']}"
+              + (f" ({c['rejected_reasons']})" if c["rejected"] else "")
+              + f"; {c['bytes_per_message']} bytes per message; send-to-fuse latency p50 {lat['p50']} ms, "
+              f"p95 {lat['p95']} ms.",
+              "", f"Channel: range {sc.comm.range_m:g} m, latency {sc.comm.latency_ms.mean:g} ± "
+              f"{sc.comm.latency_ms.jitter:g} ms ({sc.comm.latency_ms.distribution}), drop {sc.comm.drop.model} "
+              f"p={sc.comm.drop.p:g}, bandwidth {sc.comm.bandwidth_mbps} Mbps, max age {sc.comm.max_age_ms:g} ms, "
+              f"pose noise {sc.comm.pose_noise.xy_std_m:g} m / {sc.comm.pose_noise.yaw_std_deg:g}°.",
+              "", "## Reference (CoBEVT paper, OPV2V; real data, trained models)", "",
+              "| method | camera IoU vehicle / road / lane | LiDAR AP@0.7 |", "|---|---|---|"]
+    for m in ("none", "late", "early", "attfuse", "fcooper", "v2vnet", "disconet", "cobevt"):
+        cam = PAPER_CAMERA.get(m)
+        lines.append(f"| {m} | {' / '.join(f'{v:.1f}' for v in cam) if cam else '-'} | "
+                     f"{PAPER_LIDAR_AP70.get(m, '-')} |")
+    lines += ["", "Plots: `iou_by_method.png`, `iou_per_frame.png`. Recording: `recording.rrd` "
+              "(open with `rerun recording.rrd`).", ""]
+    return "\n".join(lines)
+
+
+def plot(out: Path, doc: dict, scores: dict[str, MethodScore]) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    paths = []
+    methods = list(doc["methods"])
+    keys = [("iou_vehicle", "vehicle (visible)"), ("iou_road", "road"), ("iou_lane", "lane")]
+    fig, ax = plt.subplots(figsize=(max(6, 1.1 * len(methods) + 2), 4))
+    w = 0.8 / len(keys)
+    for j, (k, label) in enumerate(keys):
+        vals = [doc["methods"][m][k] or 0.0 for m in methods]
+        ax.bar(np.arange(len(methods)) + (j - 1) * w, vals, w, label=label)
+    ax.set_xticks(np.arange(len(methods)), methods)
+    ax.set_ylabel("IoU")
+    ax.set_ylim(0, 1)
+    ax.set_title(f"{doc['scenario']}: IoU by method ({doc['frames']} frames)")
+    ax.legend()
+    fig.tight_layout()
+    paths.append(out / "iou_by_method.png")
+    fig.savefig(paths[-1], dpi=100)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(8, 4))
+    for m in methods:
+        ax.plot(scores[m].vehicle.per_frame, label=m, lw=1)
+    ax.set_xlabel("frame (with vehicle cells)")
+    ax.set_ylabel("IoU vehicle (visible)")
+    ax.set_ylim(0, 1)
+    ax.legend(ncol=4, fontsize=8)
+    fig.tight_layout()
+    paths.append(out / "iou_per_frame.png")
+    fig.savefig(paths[-1], dpi=100)
+    plt.close(fig)
+    return paths
+
+
+def write_outputs(out: Path, summary: RunSummary, scores: dict[str, MethodScore], comm: CommStats,
+                  comm_by_kind: dict[str, CommStats], iou_fn: Callable | None) -> dict:
+    """Write metrics.json, report.md and plots into `out`; returns the metrics document."""
+    out.mkdir(parents=True, exist_ok=True)
+    doc = metrics_json(summary, scores, comm, comm_by_kind, iou_fn)
+    (out / "metrics.json").write_text(json.dumps(doc, indent=2))
+    (out / "report.md").write_text(report_md(doc, summary))
+    if doc["methods"]:
+        plot(out, doc, scores)
+    return doc
