@@ -49,7 +49,7 @@ class Mailbox:
 
     def __init__(self) -> None:
         self.cond = threading.Condition()
-        self.raw: dict[tuple[str, int], dict[str, bytes]] = defaultdict(dict)
+        self.raw: dict[tuple[str, int], list[tuple[str, bytes]]] = defaultdict(list)  # (sender key, bytes)
         self.unframed: list[tuple[str, str, bytes]] = []  # could not even read a frame number
         self.worlds: dict[int, bytes] = {}
         self.done = False
@@ -60,7 +60,7 @@ class Mailbox:
             if frame is None:
                 self.unframed.append((kind, sender, data))
             else:
-                self.raw[(kind, frame)][sender] = data
+                self.raw[(kind, frame)].append((sender, data))
             self.cond.notify_all()
 
 
@@ -90,6 +90,9 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
     models = build_method_models(sc, encoder, tuple(m for m in methods if lidar or m != "early"))
     static = static_from_bytes(bus.fetch("static", "main", START_TIMEOUT_S))
     assets = build_map_assets(static)
+    c, f = encoder.out_channels, encoder.out_cells
+    shapes = {"features": {"features": (c, f, f)}, "points": {"points": (None, 4)},
+              "outputs": {"outputs": (3, 8 * f, 8 * f), "outputs.boxes": (None, 6)}}  # decoder: 8x upsampling
 
     box = Mailbox()
     for kind in [*kinds, "vis"]:
@@ -131,7 +134,7 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
                     lost[cav] = k
             for cav in lost:
                 stats.record_lost_agent(cav)
-            inp, visible = _collect(box, k, world, me, kinds, inboxes, ego_poses, key, args, stats)
+            inp, visible = _collect(box, k, world, me, kinds, inboxes, ego_poses, key, args, shapes)
             gt = bev_ground_truth(world, me, sc.bev, visible, assets=assets)
             boxes_gt, ids = gt_boxes(world, me, sc.bev)
             boxes_gt = boxes_gt[[i in visible for i in ids]] if len(ids) else boxes_gt
@@ -159,6 +162,7 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
         status = f"interrupted after {frames_done} frames"
         raise
     finally:
+        _reject_leftovers(box, kinds, inboxes, key, args)
         summary.frames = frames_done
         summary.status = status
         summary.wall_s = time.monotonic() - t_start
@@ -167,6 +171,28 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
         if recorder is not None:
             recorder.close()
     return 0
+
+
+def _reject_leftovers(box: Mailbox, kinds: list[str], inboxes: dict[str, Inbox], key: bytes | None,
+                      args: AgentArgs) -> None:
+    """Messages never fused (e.g. claiming a frame the run never reached) still get validated and counted."""
+    with box.cond:
+        leftovers = [(kind, data) for (kind, _f), table in box.raw.items() if kind in kinds for _s, data in table]
+        leftovers += [(kind, data) for kind, _s, data in box.unframed if kind in kinds]
+        box.raw.clear()
+        box.unframed.clear()
+    for kind, data in leftovers:
+        try:
+            decode(data, key=key, known_senders=args.cavs, run_id=args.run_id)
+        except RejectedMessage as e:
+            _count_rejected(inboxes, kind, e.reason)
+
+
+def _count_rejected(inboxes: dict[str, Inbox], kind: str, reason: str) -> None:
+    """Per kind, and every kind also in comm.rejected (the features inbox's stats)."""
+    inboxes[kind].stats.record_rejected(reason)
+    if kind != "features":
+        inboxes["features"].stats.record_rejected(reason)
 
 
 def _bytes_for(method: str, inboxes: dict[str, Inbox]) -> int:
@@ -215,7 +241,7 @@ def _wait_messages(box: Mailbox, bus: Bus, k: int, present: list[str], kinds: li
     with box.cond:
         while True:
             missing = [c for c in present if c not in lost and not all(
-                c in box.raw.get((kind, k), {}) for kind in [*kinds, "vis"])]
+                any(s == c for s, _ in box.raw.get((kind, k), ())) for kind in [*kinds, "vis"])]
             dead = [c for c in missing if bus.was_alive(f"cav.{c}") and not bus.is_alive(f"cav.{c}")]
             for c in dead:
                 lost[c] = k
@@ -233,39 +259,34 @@ def _wait_messages(box: Mailbox, bus: Bus, k: int, present: list[str], kinds: li
 
 def _collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str], inboxes: dict[str, Inbox],
              ego_poses: dict[int, Pose], key: bytes | None, args: AgentArgs,
-             stats: CommStats) -> tuple[FusionInputs, set[str]]:
+             shapes: dict[str, dict]) -> tuple[FusionInputs, set[str]]:
     """Decode frame k's messages, pass them through the channel, and gather what is fusable now."""
-    sc = args.scenario
-    realtime = sc.transport.clock == "realtime"
+    realtime = args.scenario.transport.clock == "realtime"
     now = world.time
     with box.cond:
-        raw = {kind: box.raw.pop((kind, k), {}) for kind in [*kinds, "vis"]}
-        if realtime:  # late frames' messages arrive whenever they arrive
-            for (kind, f), table in list(box.raw.items()):
-                if f < k and kind in kinds:
-                    raw.setdefault(kind, {}).update({f"{s}@{f}": v for s, v in table.items()})
-                    del box.raw[(kind, f)]
+        raw = {kind: box.raw.pop((kind, k), []) for kind in [*kinds, "vis"]}
+        # messages of earlier frames that came late (realtime, or a rogue sender): judged now
+        for (kind, f), table in list(box.raw.items()):
+            if f < k:
+                if kind in kinds:
+                    raw[kind] += table
+                del box.raw[(kind, f)]
         unframed, box.unframed = box.unframed, []
-    for _kind, _sender, _data in unframed:
-        stats.record_rejected("truncated")
+    for kind, _sender, _data in unframed:
+        if kind in kinds:
+            _count_rejected(inboxes, kind, "truncated")
     visible: set[str] = set()
-    for data in raw["vis"].values():
+    for _sender, data in raw["vis"]:
         try:
             visible.update(str(i) for i in json.loads(data)["ids"])
         except (ValueError, KeyError, TypeError):
-            stats.record_rejected("bad_header")
-    shapes = {"features": (None, None, None), "points": (None, 4), "outputs": (3, None, None),
-              "outputs.boxes": (None, 6)}
+            pass  # ground-truth side channel between our own processes, not a V2V message
     for kind in kinds:
-        for _sender, data in raw[kind].items():
+        for _sender, data in raw[kind]:
             try:
-                msg = decode(data, key=key, known_senders=args.cavs, expected={kind: shapes[kind],
-                             **({"outputs.boxes": shapes["outputs.boxes"]} if kind == "outputs" else {})},
-                             run_id=args.run_id)
+                msg = decode(data, key=key, known_senders=args.cavs, expected=shapes[kind], run_id=args.run_id)
             except RejectedMessage as e:
-                inboxes[kind].stats.record_rejected(e.reason)
-                if kind != "features":
-                    stats.record_rejected(e.reason)
+                _count_rejected(inboxes, kind, e.reason)
                 continue
             ego_then = ego_poses.get(msg.frame, ego_poses[k])
             send_time = now if realtime else msg.capture_time

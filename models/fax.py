@@ -132,26 +132,37 @@ class RelativeAttention3D(nn.Module):
         nn.init.trunc_normal_(self.relative_bias_table, std=0.02)
         self.register_buffer("relative_index", relative_position_index(agents, window), persistent=False)
 
-    def bias(self, n: int) -> Tensor:
-        """[heads, T, T] bias for n agents (T = n*P*P)."""
-        if n > self.agents:
-            raise ValueError(f"{n} agents > table size {self.agents}")
-        t = n * self.window**2
-        idx = self.relative_index[:t, :t]
-        return self.relative_bias_table[idx].permute(2, 0, 1)
+    def bias(self, agents: int | Tensor) -> Tensor:
+        """[heads, T, T] bias for the first ``agents`` slots, or for the given slot ids ([n] long tensor)."""
+        p2 = self.window**2
+        if isinstance(agents, int):
+            if agents > self.agents:
+                raise ValueError(f"{agents} agents > table size {self.agents}")
+            idx = self.relative_index[: agents * p2, : agents * p2]
+        else:
+            if agents.numel() and int(agents.max()) >= self.agents:
+                raise ValueError(f"agent slot {int(agents.max())} >= table size {self.agents}")
+            tok = (agents[:, None] * p2 + torch.arange(p2, device=agents.device)).flatten()  # [T]
+            idx = self.relative_index[tok[:, None], tok[None, :]]
+        return self.relative_bias_table[idx].permute(2, 0, 1).contiguous()
 
-    def forward(self, x: Tensor, n: int, key_mask: Tensor | None = None) -> Tensor:
-        """x [..., T, C] (T = n*P*P tokens of a fused window), key_mask [..., T] bool (False = ignore)."""
+    def forward(self, x: Tensor, agents: int | Tensor, key_mask: Tensor | None = None) -> Tensor:
+        """x [..., T, C]: T = n*P*P tokens of a fused window of n agents, ``agents`` = n (slots 0..n-1) or
+        the [n] slot ids the tokens belong to (for relative offsets); key_mask [..., T] bool (False = ignore)."""
         *lead, t, c = x.shape
         d = c // self.heads
-        qkv = self.qkv(x).reshape(*lead, t, 3, self.heads, d)
-        q, k, v = qkv.unbind(-3)  # each [..., T, h, d]
-        q, k, v = (z.transpose(-2, -3) for z in (q, k, v))  # [..., h, T, d]
-        logits = (q * self.scale) @ k.transpose(-1, -2) + self.bias(n)  # [..., h, T, T]
-        if key_mask is not None:
-            logits = logits.masked_fill(~key_mask[..., None, None, :], float("-inf"))
-        out = logits.softmax(dim=-1) @ v  # [..., h, T, d]
-        return self.proj(out.transpose(-2, -3).reshape(*lead, t, c))
+        q, k, v = self.qkv(x).reshape(-1, t, 3, self.heads, d).permute(2, 0, 3, 1, 4)  # 3 x [G, h, T, d]
+        g = q.shape[0]
+        bias = self.bias(agents)  # [h, T, T]
+        if key_mask is not None and not bool(key_mask.all()):
+            # -inf on absent keys: [G, h, T, T] = bias + (0 | -inf per key)
+            neg = torch.zeros(key_mask.shape, dtype=x.dtype, device=x.device).masked_fill(~key_mask, float("-inf"))
+            mask = bias[None] + neg.reshape(g, 1, 1, t)
+        else:
+            mask = bias[None].expand(g, -1, -1, -1)
+        # softmax(Q K^T / sqrt(d) + B) V, Eq. 2 (4D inputs take PyTorch's fused CPU kernel)
+        out = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, scale=self.scale)  # [G, h, T, d]
+        return self.proj(out.transpose(1, 2).reshape(*lead, t, c))
 
 
 class FAXSelfAttention(nn.Module):
@@ -160,6 +171,8 @@ class FAXSelfAttention(nn.Module):
     Pre-LayerNorm residual attention and MLP; window size = grid size = ``window``.
     Input/output ``[B, N, H, W, C]``; ``token_mask`` ``[B, N, H, W]`` bool marks tokens that may be
     attended to (absent agents / padding False). Masked tokens still get (meaningless) outputs.
+    ``agent_ids`` ([N] long) gives the slot index of each of the N maps when they are a subset of the
+    slots (relative agent offsets use slot indices); default 0..N-1.
     """
 
     def __init__(self, dim: int, heads: int, window: int, mlp_dim: int, agents: int) -> None:
@@ -174,17 +187,22 @@ class FAXSelfAttention(nn.Module):
         self.norm4 = nn.LayerNorm(dim)
         self.global_mlp = Mlp(dim, mlp_dim)
 
-    def _attend(self, x: Tensor, attn: RelativeAttention3D, mode: str, mask: Tensor | None) -> Tensor:
+    def _attend(
+        self, x: Tensor, attn: RelativeAttention3D, mode: str, mask: Tensor | None, agents: int | Tensor
+    ) -> Tensor:
         _, n, h, w, _ = x.shape
         p = self.window
         xw = partition(x, p, mode)  # [B, G, N*P*P, C]
         mw = None if mask is None else partition(mask[..., None], p, mode)[..., 0]  # [B, G, N*P*P]
-        return unpartition(attn(xw, n, mw), p, mode, n, h, w)
+        return unpartition(attn(xw, agents, mw), p, mode, n, h, w)
 
-    def forward(self, x: Tensor, token_mask: Tensor | None = None) -> Tensor:  # [B,N,H,W,C] -> same
-        x = x + self._attend(self.norm1(x), self.local_attn, "block", token_mask)  # Eq. 5
+    def forward(
+        self, x: Tensor, token_mask: Tensor | None = None, agent_ids: Tensor | None = None
+    ) -> Tensor:  # [B, N, H, W, C] -> same
+        agents: int | Tensor = x.shape[1] if agent_ids is None else agent_ids
+        x = x + self._attend(self.norm1(x), self.local_attn, "block", token_mask, agents)  # Eq. 5
         x = x + self.local_mlp(self.norm2(x))
-        x = x + self._attend(self.norm3(x), self.global_attn, "grid", token_mask)  # Eq. 6
+        x = x + self._attend(self.norm3(x), self.global_attn, "grid", token_mask, agents)  # Eq. 6
         return x + self.global_mlp(self.norm4(x))
 
 
@@ -224,6 +242,7 @@ class CameraWindowAttention(nn.Module):
         q = self.to_q(self.norm_q(q)).reshape(b, g, m, tq, h, d)
         k = self.to_k(self.norm_k(k)).reshape(b, g, m, tk, h, d)
         v = self.to_v(self.norm_v(v)).reshape(b, g, m, tk, h, d)
+        # camera m's query vs camera m's keys; one softmax over all cameras' keys (M * Tk)
         logits = torch.einsum("bgmqhd,bgmkhd->bghqmk", q * self.scale, k)  # [B, G, h, Tq, M, Tk]
         att = logits.reshape(b, g, h, tq, m * tk).softmax(dim=-1).reshape(b, g, h, tq, m, tk)
         out = torch.einsum("bghqmk,bgmkhd->bgqhd", att, v)  # [B, G, Tq, h, d]

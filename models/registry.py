@@ -144,7 +144,7 @@ def describe_models(preset: str, agents: int = 4) -> list[dict]:
     valid = torch.ones(1, agents, dtype=torch.bool)
     for name in FUSION:
         fus = build_fusion(name, preset).eval()
-        names = [n for n, _ in fus.named_children()]
+        names = list(getattr(fus, "stage_names", [n for n, _ in fus.named_children()]))
         stages = _hook_shapes(fus, names, lambda fus=fus: fus(feats, valid))
         stages.append(("output", tuple(fus(feats, valid).shape)))
         rows.append(_row(name, "fusion", fus, stages, agents=agents))

@@ -8,16 +8,22 @@ head) rather than reading out slot 0, with the max restricted to present agents.
 
 Absent agents (``valid_mask`` False) have no influence: their features are replaced by zeros, their
 tokens are masked with -inf in every attention's logits and they are excluded from the max, so
-changing them changes nothing. The ego slot is always treated as present. Maps whose sides are not
-multiples of ``window`` are zero-padded and the padding is masked the same way, then cropped.
+changing them changes nothing. When every sample of the batch has the same agents present (e.g. batch
+1) the absent slots are dropped instead, which gives the same result faster. The ego slot is always
+treated as present. Maps whose sides are not multiples of ``window`` are zero-padded and the padding
+is masked the same way, then cropped.
 
-Stage submodules (forward-hook names): ``blocks.0..2`` (channels-last [B, L, H, W, C]) and ``head``
+Cost: a window holds L*window^2 tokens, so attention time and memory grow with L^2 (per layer
+(H*W/window^2) * heads * (L*window^2)^2 logits; 32x32 maps, 8 agents, window 8: 16.8 M).
+
+Stage submodules (forward-hook names): ``blocks.0..2`` (channels-last [B, L', H, W, C]) and ``head``
 ([B, C, H, W]); ``FuseBEVT.stage_shapes()`` reports them.
 
 Agent order: the relative bias is indexed by slot offsets n1 - n2, so permuting the non-ego agents
 permutes which bias entries pairs of agents use: FuseBEVT is NOT exactly permutation invariant over
 non-ego agents (it is when the bias does not depend on the agent offset beyond "same agent or not";
-tests check both). Only the first L slots of a ``max_agents`` table are used when L < max_agents.
+tests check both). The bias table is sized for ``max_agents``; fewer agents use the entries of their
+actual slot offsets.
 """
 
 from __future__ import annotations
@@ -76,14 +82,22 @@ class FuseBEVT(nn.Module):
         p = self.window
         ph, pw = (-h) % p, (-w) % p
         x = features.permute(0, 1, 3, 4, 2)  # [B, L, H, W, C]
+        agent_ids: Tensor | None = None
+        if bool((valid == valid[:1]).all()):
+            # same agents present in every sample: drop the absent slots (exactly equivalent to masking
+            # them, and cheaper); relative agent offsets keep using the original slot indices
+            ids = valid[0].nonzero().flatten()
+            if ids.numel() < n:
+                x, agent_ids = x[:, ids], ids
+            valid = valid[:, ids]
         x = torch.where(valid[:, :, None, None, None], x, torch.zeros((), dtype=x.dtype, device=x.device))
         inside = torch.ones(h, w, dtype=torch.bool, device=x.device)
         if ph or pw:
             x = F.pad(x, (0, 0, 0, pw, 0, ph))  # pad W then H (channels-last)
             inside = F.pad(inside, (0, pw, 0, ph), value=False)
-        token_mask = valid[:, :, None, None] & inside  # [B, L, H', W']
+        token_mask = valid[:, :, None, None] & inside  # [B, L', H', W']
         for blk in self.blocks:
-            x = blk(x, token_mask)  # [B, L, H', W', C]
+            x = blk(x, token_mask, agent_ids)  # [B, L', H', W', C]
         x = x[:, :, :h, :w]
         x = x.masked_fill(~valid[:, :, None, None, None], float("-inf")).amax(dim=1)  # [B, H, W, C]
         return self.head(x)
@@ -91,7 +105,8 @@ class FuseBEVT(nn.Module):
     def stage_shapes(self, inputs: tuple[Tensor, Tensor] | None = None) -> list[tuple[str, tuple[int, ...]]]:
         """(stage name, output shape); default inputs: 2 agents on a 32x32 map.
 
-        ``blocks.i`` outputs are channels-last [B, L, H, W, C]; ``head`` is the fused [B, C, H, W].
+        ``blocks.i`` outputs are channels-last [B, L', H, W, C] (L' = present agents when every sample has
+        the same ones, else L); ``head`` is the fused [B, C, H, W].
         """
         if inputs is None:
             inputs = (torch.randn(1, 2, self.channels, 32, 32), torch.ones(1, 2, dtype=torch.bool))

@@ -88,6 +88,9 @@ def test_bias_table_size_and_index() -> None:
     bias = attn.bias(n)
     assert torch.equal(bias[1, tok(1, 2, 3), tok(0, 0, 0)], attn.relative_bias_table[entry(1, 2, 3), 1])
     assert torch.equal(attn.bias(2), bias[:, : 2 * p * p, : 2 * p * p])
+    # a subset of slots (agents 0 and 2 present) keeps their real offsets
+    keep = torch.cat([torch.arange(0, p * p), torch.arange(2 * p * p, 3 * p * p)])
+    assert torch.equal(attn.bias(torch.tensor([0, 2])), bias[:, keep][:, :, keep])
 
 
 def test_relative_attention_key_mask_removes_tokens() -> None:

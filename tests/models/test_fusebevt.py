@@ -104,3 +104,16 @@ def test_too_many_agents_rejected() -> None:
     m = make(max_agents=2)
     with pytest.raises(ValueError):
         m(torch.randn(1, 3, 16, 8, 8), torch.ones(1, 3, dtype=torch.bool))
+
+
+def test_masked_path_equals_dropped_slots_path() -> None:
+    """Samples with different present agents take the -inf masking path; a batch where all samples have
+    the same agents drops the absent slots. Both give the same result."""
+    m = make()
+    x = torch.randn(2, 4, 16, 8, 8)
+    valid = torch.tensor([[True, False, True, True], [True, True, False, False]])
+    with torch.no_grad():
+        both = m(x, valid)
+        for i in range(2):
+            alone = m(x[i : i + 1], valid[i : i + 1])
+            torch.testing.assert_close(both[i : i + 1], alone, atol=1e-5, rtol=1e-5)

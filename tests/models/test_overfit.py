@@ -74,7 +74,7 @@ def test_tiny_pointpillars_pipeline_overfits_one_batch() -> None:
     opt = torch.optim.Adam(model.parameters(), lr=1e-2)
     losses = []
     start = time.perf_counter()
-    for _ in range(40):
+    for _ in range(100):
         out = model(clouds, poses, valid)
         det = detection_loss(out["det_cls"], out["det_reg"], targets.labels[None], targets.reg[None])
         loss = segmentation_loss(out["dynamic"], dyn) + segmentation_loss(out["static"], sta) + det["total"]
@@ -85,4 +85,4 @@ def test_tiny_pointpillars_pipeline_overfits_one_batch() -> None:
         if losses[-1] * 10 <= losses[0]:
             break
     assert losses[-1] * 10 <= losses[0], f"loss {losses[0]:.3f} -> {losses[-1]:.3f} in {len(losses)} steps"
-    assert time.perf_counter() - start < 60
+    assert time.perf_counter() - start < 120

@@ -1,0 +1,197 @@
+"""The main job end to end (`v2vsim run`, real processes, real zenoh on loopback, real libsumo,
+torch and Rerun) and the faults it must survive: a CAV killed mid-run, Ctrl-C, malformed
+messages, a port in use, an unreachable router."""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import psutil
+import zenoh
+
+from v2vsim.comm.codec import Message, encode
+from v2vsim.comm.transport import free_port
+
+REPO = Path(__file__).resolve().parents[2]
+SCENARIO = str(REPO / "scenarios" / "intersection.yaml")
+CONTRACT_METHOD_KEYS = {"iou_vehicle", "iou_vehicle_frame_mean", "iou_road", "iou_lane", "ap50", "ap70",
+                        "fusion_ms", "bytes_per_frame"}
+
+
+class Run:
+    """`v2vsim run` as a child process whose stderr is read line by line."""
+
+    def __init__(self, *args: str) -> None:
+        self.proc = subprocess.Popen([sys.executable, "-m", "v2vsim.cli", "run", SCENARIO, *args],
+                                     stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, cwd=REPO)
+        self.lines: queue.Queue[str] = queue.Queue()
+        self.log: list[str] = []
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        for line in self.proc.stderr:  # type: ignore[union-attr]
+            self.log.append(line)
+            self.lines.put(line)
+
+    def wait_for(self, text: str, timeout: float = 240) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            try:
+                if text in self.lines.get(timeout=1):
+                    return
+            except queue.Empty:
+                if self.proc.poll() is not None:
+                    break
+        raise AssertionError(f"never saw {text!r}; stderr:\n{''.join(self.log)}")
+
+    def finish(self, timeout: float = 300) -> int:
+        rc = self.proc.wait(timeout=timeout)
+        time.sleep(0.2)
+        return rc
+
+    def children(self) -> list[psutil.Process]:
+        return psutil.Process(self.proc.pid).children(recursive=True)
+
+
+def _metrics(out: Path) -> dict:
+    return json.loads((out / "metrics.json").read_text())
+
+
+def test_run_writes_report_metrics_recording_and_plots(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    run = Run("--frames", "4", "--out", str(out), "--set", "cavs.count=3")
+    assert run.finish() == 0, "".join(run.log)
+    m = _metrics(out)
+    assert m["scenario"] == "intersection" and m["frames"] == 4 and m["cavs"] == 3 and m["modality"] == "lidar"
+    assert m["real_time_factor"] > 0
+    comm = m["comm"]
+    for k in ("sent", "delivered", "dropped", "stale", "rejected", "bytes_per_message", "latency_ms"):
+        assert k in comm
+    # two neighbours x 4 frames reached the ego's link models; each message is header + 64x32x32 float16
+    assert comm["sent"] == 8
+    assert comm["sent"] == comm["delivered"] + comm["dropped"] + comm["out_of_range"]
+    assert 64 * 32 * 32 * 2 < comm["bytes_per_message"] < 64 * 32 * 32 * 2 + 512
+    assert list(m["methods"]) == ["none", "late", "early", "attfuse", "fcooper", "v2vnet", "disconet", "cobevt"]
+    for name, r in m["methods"].items():
+        assert CONTRACT_METHOD_KEYS <= set(r), name
+        assert r["iou_vehicle"] is None or 0.0 <= r["iou_vehicle"] <= 1.0
+        assert r["fusion_ms"] > 0
+    assert m["methods"]["none"]["bytes_per_frame"] == 0
+    report = (out / "report.md").read_text()
+    assert "| cobevt |" in report and "untrained" in report
+    for png in ("iou_by_method.png", "iou_per_frame.png"):
+        assert (out / png).read_bytes()[:4] == b"\x89PNG"
+    from rerun.chunk import RrdReader
+
+    paths = {str(p) for p in RrdReader(str(out / "recording.rrd")).store().schema().entity_paths()}
+    assert {"/bev/gt", "/bev/cobevt", "/world/actors"} <= paths, paths
+
+
+def test_killed_cav_is_noticed_and_the_run_finishes(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    run = Run("--frames", "60", "--out", str(out), "--set", "cavs.count=3", "--methods", "none,cobevt")
+    run.wait_for("[ego cav0] frame 20/60")
+    victims = [p for p in run.children() if "agents.cav" in " ".join(p.cmdline()) and "cav2" in p.cmdline()]
+    assert len(victims) == 1
+    victims[0].send_signal(signal.SIGKILL)
+    assert run.finish() == 0, "".join(run.log)
+    m = _metrics(out)
+    assert m["frames"] == 60 and m["status"] == "complete"
+    assert "cav2" in m["lost_agents"] and 20 <= m["lost_agents"]["cav2"] < 60
+    assert "cav2" in m["comm"]["lost_agents"]
+    assert m["methods"]["cobevt"]["frames"] == 60
+
+
+def test_ctrl_c_stops_every_process_and_writes_partial_report(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    run = Run("--frames", "400", "--out", str(out), "--set", "cavs.count=2", "--methods", "none,cobevt")
+    run.wait_for("[ego cav0] frame 20/400")
+    children = run.children()
+    assert len(children) >= 4
+    t0 = time.monotonic()
+    run.proc.send_signal(signal.SIGINT)
+    rc = run.finish(timeout=30)
+    assert rc == 130
+    assert time.monotonic() - t0 < 10
+    m = _metrics(out)
+    assert m["status"].startswith("interrupted") and 20 <= m["frames"] < 400
+    assert (out / "report.md").exists()
+    gone, alive = psutil.wait_procs(children, timeout=5)
+    assert not alive, f"orphans: {[p.cmdline() for p in alive]}"
+
+
+def _rogue_messages(run_id: str) -> list[tuple[str, bytes]]:
+    good = Message(kind="features", run_id=run_id, sender_id="cav1", frame=0, capture_time=0.0,
+                   sender_pose=(0.0, 0.0, 0.0, 0.0), payload=np.zeros((64, 32, 32), np.float16))
+    data = encode(good)
+    nan = Message(kind="features", run_id=run_id, sender_id="cav1", frame=0, capture_time=0.0,
+                  sender_pose=(0.0, 0.0, 0.0, 0.0), payload=np.full((64, 32, 32), np.nan, np.float16))
+    wrong_shape = Message(kind="features", run_id=run_id, sender_id="cav1", frame=0, capture_time=0.0,
+                          sender_pose=(0.0, 0.0, 0.0, 0.0), payload=np.zeros((64, 16, 16), np.float16))
+    stranger = Message(kind="features", run_id=run_id, sender_id="cav9", frame=0, capture_time=0.0,
+                       sender_pose=(0.0, 0.0, 0.0, 0.0), payload=np.zeros((64, 32, 32), np.float16))
+    return [("cav1", data[: len(data) // 2]), ("cav1", b"XXXX" + data[4:]), ("cav1", b"\x01\x02"),
+            ("cav1", encode(nan, check_finite=False)), ("cav1", encode(wrong_shape)), ("cav9", encode(stranger))]
+
+
+def test_malformed_messages_are_rejected_over_a_router(tmp_path: Path) -> None:
+    """Client mode through `v2vsim router` (the across-hosts setup), with a rogue publisher."""
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    router = subprocess.Popen([sys.executable, "-m", "v2vsim.cli", "router", "--listen", endpoint],
+                              stderr=subprocess.PIPE, text=True)
+    try:
+        assert "listening" in router.stderr.readline()  # type: ignore[union-attr]
+        out = tmp_path / "run"
+        run = Run("--frames", "40", "--out", str(out), "--run-id", "rogue1", "--set", "cavs.count=2",
+                  "--methods", "none,cobevt", "--set", "transport.mode=client",
+                  "--set", f"transport.connect=[{endpoint}]")
+        run.wait_for("[ego cav0] frame 20/40")
+        cfg = zenoh.Config()
+        for k, v in {"mode": "client", "scouting/multicast/enabled": False, "scouting/gossip/enabled": False,
+                     "connect/endpoints": [endpoint]}.items():
+            cfg.insert_json5(k, json.dumps(v))
+        with zenoh.open(cfg) as session:
+            for sender, data in _rogue_messages("rogue1"):
+                session.put(f"v2vsim/rogue1/features/{sender}", data)
+            assert run.finish() == 0, "".join(run.log)
+        m = _metrics(out)
+        reasons = m["comm"]["rejected_reasons"]
+        assert m["comm"]["rejected"] == 6, reasons
+        assert {"truncated", "bad_magic", "non_finite", "shape_mismatch", "unknown_sender"} <= set(reasons)
+        assert m["frames"] == 40 and m["lost_agents"] == {}
+    finally:
+        router.send_signal(signal.SIGINT)
+        router.wait(timeout=10)
+
+
+def test_port_in_use_is_one_line_exit_2(tmp_path: Path) -> None:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        r = subprocess.run([sys.executable, "-m", "v2vsim.cli", "run", SCENARIO, "--out", str(tmp_path),
+                            "--set", f"transport.listen=[tcp/127.0.0.1:{port}]"],
+                           capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2
+    assert "address already in use" in r.stderr and "Traceback" not in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+
+
+def test_unreachable_router_is_one_line_exit_2(tmp_path: Path) -> None:
+    r = subprocess.run([sys.executable, "-m", "v2vsim.cli", "run", SCENARIO, "--out", str(tmp_path),
+                        "--set", "transport.mode=client", "--set", f"transport.connect=[tcp/127.0.0.1:{free_port()}]"],
+                       capture_output=True, text=True, timeout=60, env=dict(os.environ))
+    assert r.returncode == 2
+    assert "cannot reach" in r.stderr and "Traceback" not in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
