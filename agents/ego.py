@@ -113,20 +113,23 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
     t_start = time.monotonic()
     frames_done = 0
     status = "complete"
+    realtime = sc.transport.clock == "realtime"
+    k = -1
     try:
-        for k in range(args.frames):
-            world = _wait_world(box, k)
-            if world is None:
-                status = "ended early (driver finished)"
+        while k + 1 < args.frames:
+            got = _wait_world(box, k + 1, realtime)
+            if got is None:
+                status = f"ended early: the driver finished after frame {k}" if not realtime else status
                 break
-            world = world_from_bytes(world, static)
+            k, data = got
+            world = world_from_bytes(data, static)
             ego_actor = world.actor(me)
             if ego_actor is None:
                 status = f"ego {me} left the simulation at frame {k}"
                 break
             ego_poses[k] = ego_actor.pose
             present = [a.id for a in world.cavs if a.id in args.cavs]
-            if sc.transport.clock == "lockstep":
+            if not realtime:
                 _wait_messages(box, bus, k, present, kinds, lost)
             for cav in present:
                 if cav not in lost and bus.was_alive(f"cav.{cav}") and not bus.is_alive(f"cav.{cav}") \
@@ -154,8 +157,8 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
                 ib.take_bytes()
             if recorder is not None:
                 recorder.log_frame(k, world, me, gt, preds, inp)
-            frames_done = k + 1
-            if sc.transport.clock == "lockstep":
+            frames_done += 1
+            if not realtime:
                 bus.put("ack", json.dumps({"ego": me, "frame": k}).encode())
             progress_line(f"ego {me}", k + 1, args.frames, t_start)
     except Stop:
@@ -164,6 +167,7 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
     finally:
         _reject_leftovers(box, kinds, inboxes, key, args)
         summary.frames = frames_done
+        summary.sim_s = (k + 1) / sc.rate_hz
         summary.status = status
         summary.wall_s = time.monotonic() - t_start
         summary.lost_agents = dict(lost)
@@ -225,13 +229,20 @@ def _left(box: Mailbox, cav: str) -> bool:
     return False  # a CAV whose vehicle left is absent from the world, so it is never expected
 
 
-def _wait_world(box: Mailbox, k: int) -> bytes | None:
+def _wait_world(box: Mailbox, k: int, realtime: bool) -> tuple[int, bytes] | None:
+    """World k (lockstep), or the newest world from k on (realtime: frames we fell behind on are skipped)."""
     with box.cond:
-        while k not in box.worlds:
+        while True:
+            ready = [f for f in box.worlds if f >= k]
+            if ready and (realtime or k in box.worlds):
+                f = max(ready) if realtime else k
+                data = box.worlds[f]
+                for old in [x for x in box.worlds if x <= f]:
+                    del box.worlds[old]
+                return f, data
             if box.done:
                 return None
             box.cond.wait(0.5)
-        return box.worlds.pop(k)
 
 
 def _wait_messages(box: Mailbox, bus: Bus, k: int, present: list[str], kinds: list[str],

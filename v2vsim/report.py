@@ -29,13 +29,14 @@ class RunSummary:
     frames: int = 0
     status: str = "complete"
     wall_s: float = 0.0
+    sim_s: float = 0.0  # simulated seconds covered (realtime runs may skip frames)
     lost_agents: dict[str, int] = field(default_factory=dict)  # CAV id -> frame it was lost at
 
 
 def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: CommStats,
                  comm_by_kind: dict[str, CommStats], iou_fn: Callable | None) -> dict:
     sc = summary.scenario
-    sim_s = summary.frames / sc.rate_hz
+    sim_s = summary.sim_s or summary.frames / sc.rate_hz
     comm_doc = comm.to_json()
     comm_doc["by_kind"] = {k: s.to_json() for k, s in comm_by_kind.items() if k != "features"}
     return {

@@ -69,7 +69,7 @@ def _metrics(out: Path) -> dict:
 
 def test_run_writes_report_metrics_recording_and_plots(tmp_path: Path) -> None:
     out = tmp_path / "run"
-    run = Run("--frames", "4", "--out", str(out), "--set", "cavs.count=3")
+    run = Run("--frames", "4", "--out", str(out), "--set", "cavs.count=3", "--set", "comm.range_m=300")
     assert run.finish() == 0, "".join(run.log)
     m = _metrics(out)
     assert m["scenario"] == "intersection" and m["frames"] == 4 and m["cavs"] == 3 and m["modality"] == "lidar"
@@ -80,6 +80,7 @@ def test_run_writes_report_metrics_recording_and_plots(tmp_path: Path) -> None:
     # two neighbours x 4 frames reached the ego's link models; each message is header + 64x32x32 float16
     assert comm["sent"] == 8
     assert comm["sent"] == comm["delivered"] + comm["dropped"] + comm["out_of_range"]
+    assert comm["delivered"] == 8 and comm["latency_ms"]["p50"] is not None  # lossless, in range
     assert 64 * 32 * 32 * 2 < comm["bytes_per_message"] < 64 * 32 * 32 * 2 + 512
     assert list(m["methods"]) == ["none", "late", "early", "attfuse", "fcooper", "v2vnet", "disconet", "cobevt"]
     for name, r in m["methods"].items():
