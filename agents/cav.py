@@ -17,7 +17,14 @@ import torch
 
 from agents.common import START_TIMEOUT_S, AgentArgs, Bus, parse_agent_args, run_agent
 from v2vsim.comm.codec import Message, encode
-from v2vsim.perception import body_frame_points, build_agent_encoder, build_method_models, late_outputs
+from v2vsim.perception import (
+    body_frame_points,
+    build_agent_encoder,
+    build_compressor,
+    build_method_models,
+    compress,
+    late_outputs,
+)
 from v2vsim.perception import encode as encode_features
 from v2vsim.sensing import sense
 from v2vsim.sensors.scene import build_map_assets, build_scene
@@ -35,6 +42,7 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
     methods = sc.perception.methods
     key = read_key(sc.comm.auth.key_file)
     encoder = build_agent_encoder(sc)
+    compressor = build_compressor(sc, encoder.out_channels)
     late_model = build_method_models(sc, encoder, ("late",))["late"] if "late" in methods else None
     static = static_from_bytes(bus.fetch("static", "main", START_TIMEOUT_S))
     assets = build_map_assets(static)
@@ -73,7 +81,8 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
         feats = encode_features(encoder, sf, sc)
         stamp = {"run_id": args.run_id, "sender_id": me, "frame": world.frame, "capture_time": world.time,
                  "sender_pose": actor.pose.as_tuple(), "compression": sc.comm.compression}
-        bus.put("features", encode(Message(kind="features", payload=feats, **stamp), key))
+        bus.put("features", encode(Message(kind="features", payload=compress(compressor, feats),
+                                           channel_compression=sc.comm.channel_compression, **stamp), key))
         if "early" in methods and lidar:
             bus.put("points", encode(Message(kind="points", payload=body_frame_points(sf, sc), **stamp), key))
         if late_model is not None:

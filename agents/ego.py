@@ -30,7 +30,16 @@ from v2vsim.comm.stats import CommStats
 from v2vsim.geometry import Pose, relative_pose
 from v2vsim.gt import bev_ground_truth, gt_boxes
 from v2vsim.metrics import ApAccumulator, MethodScore
-from v2vsim.perception import FusionInputs, build_agent_encoder, build_method_models, predict, weights_path
+from v2vsim.perception import (
+    FusionInputs,
+    build_agent_encoder,
+    build_compressor,
+    build_method_models,
+    decompress,
+    predict,
+    runnable_methods,
+    weights_path,
+)
 from v2vsim.recording import Recorder
 from v2vsim.report import RunSummary, write_outputs
 from v2vsim.sensors.scene import build_map_assets
@@ -87,11 +96,12 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
     kinds = ["features"] + (["points"] if "early" in methods and lidar else []) + (
         ["outputs"] if "late" in methods else [])
     encoder = build_agent_encoder(sc)
-    models = build_method_models(sc, encoder, tuple(m for m in methods if lidar or m != "early"))
+    models = build_method_models(sc, encoder, runnable_methods(sc))
     static = static_from_bytes(bus.fetch("static", "main", START_TIMEOUT_S))
     assets = build_map_assets(static)
     c, f = encoder.out_channels, encoder.out_cells
-    shapes = {"features": {"features": (c, f, f)}, "points": {"points": (None, 4)},
+    compressor = build_compressor(sc, c)
+    shapes = {"features": {"features": (c // sc.comm.channel_compression, f, f)}, "points": {"points": (None, 4)},
               "outputs": {"outputs": (3, 8 * f, 8 * f), "outputs.boxes": (None, 6)}}  # decoder: 8x upsampling
 
     box = Mailbox()
@@ -108,7 +118,8 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
     ego_poses: dict[int, Pose] = {}
     out_dir = Path(args.out) / ("" if me == args.egos[0] else f"ego_{me}")
     recorder = Recorder(out_dir / "recording.rrd", sc, list(models)) if sc.output.rerun else None
-    summary = RunSummary(scenario=sc, ego=me, methods=list(models), untrained=weights_path(sc) is None)
+    summary = RunSummary(scenario=sc, ego=me, methods=list(models), untrained=weights_path(sc) is None,
+                         skipped=[m for m in methods if m not in models])
     bus.ready()
     t_start = time.monotonic()
     frames_done = 0
@@ -138,6 +149,7 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
             for cav in lost:
                 stats.record_lost_agent(cav)
             inp, visible = _collect(box, k, world, me, kinds, inboxes, ego_poses, key, args, shapes)
+            inp.features = {s: decompress(compressor, v) for s, v in inp.features.items()}
             gt = bev_ground_truth(world, me, sc.bev, visible, assets=assets)
             boxes_gt, ids = gt_boxes(world, me, sc.bev)
             boxes_gt = boxes_gt[[i in visible for i in ids]] if len(ids) else boxes_gt

@@ -17,9 +17,11 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from models.compression import ChannelCompressor
 from models.fusion.early import merge_points_to_ego
 from models.fusion.late import late_fuse_boxes, late_fuse_probabilities
 from models.heads import decode_detections, resize_logits, segmentation_probabilities
+from models.presets import get_preset
 from models.registry import build_cooperative, build_encoder, is_intermediate
 from v2vsim.config import ConfigError, Scenario
 from v2vsim.sensing import SensorFrame
@@ -66,6 +68,48 @@ def build_agent_encoder(sc: Scenario) -> nn.Module:
     enc = build_encoder(sc.perception.encoder, sc.perception.preset, bev_size_m=sc.bev.size_m)
     _load(enc, _checkpoint(sc), "encoder.")
     return enc.eval()
+
+
+def runnable_methods(sc: Scenario) -> tuple[str, ...]:
+    """perception.methods less what the modality cannot run (early fusion ships LiDAR points)."""
+    return tuple(m for m in sc.perception.methods if sc.perception.modality == "lidar" or m != "early")
+
+
+def check_scenario(sc: Scenario) -> None:
+    """Model-dependent checks the schema cannot make; ConfigError before any process starts."""
+    channels = get_preset(sc.perception.preset).channels
+    ratio = sc.comm.channel_compression
+    if channels % ratio:
+        raise ConfigError(f"{sc.source}: comm.channel_compression: {ratio} does not divide the {channels} feature "
+                          f"channels of preset {sc.perception.preset!r}; allowed: a divisor of {channels}")
+    if not runnable_methods(sc):
+        raise ConfigError(f"{sc.source}: perception.methods: nothing to run for modality "
+                          f"{sc.perception.modality!r} (early fusion needs LiDAR)")
+    weights_path(sc)
+
+
+def build_compressor(sc: Scenario, channels: int) -> ChannelCompressor | None:
+    """The learned channel compression pair of comm.channel_compression (None when it is 1)."""
+    ratio = sc.comm.channel_compression
+    if ratio == 1:
+        return None
+    _seed(sc, "compressor")
+    comp = ChannelCompressor(channels, ratio)
+    _load(comp, _checkpoint(sc), "compressor.")
+    return comp.eval()
+
+
+@torch.no_grad()
+def compress(comp: ChannelCompressor | None, features: np.ndarray) -> np.ndarray:
+    """Sender side: [C, F, F] -> [C/r, F, F] (unchanged without compression)."""
+    return features if comp is None else comp.compress(torch.from_numpy(features)[None])[0].numpy()
+
+
+@torch.no_grad()
+def decompress(comp: ChannelCompressor | None, payload: np.ndarray) -> np.ndarray:
+    """Receiver side: [C/r, F, F] -> [C, F, F] float32."""
+    x = payload.astype(np.float32)
+    return x if comp is None else comp.decompress(torch.from_numpy(x)[None])[0].numpy()
 
 
 def build_method_models(sc: Scenario, encoder: nn.Module, methods: tuple[str, ...]) -> dict[str, nn.Module]:

@@ -31,6 +31,7 @@ class RunSummary:
     wall_s: float = 0.0
     sim_s: float = 0.0  # simulated seconds covered (realtime runs may skip frames)
     lost_agents: dict[str, int] = field(default_factory=dict)  # CAV id -> frame it was lost at
+    skipped: list[str] = field(default_factory=list)  # methods the modality cannot run
 
 
 def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: CommStats,
@@ -75,6 +76,9 @@ def report_md(doc: dict, summary: RunSummary) -> str:
         lines += ["", "**Weights are untrained** (no checkpoint for this encoder/preset; every process uses the same "
                   "seeded random initialisation). The scores below measure the harness, not the methods: do not "
                   "compare them with the paper."]
+    if summary.skipped:
+        lines += ["", f"Not run with {sc.perception.modality} input: {', '.join(summary.skipped)} "
+                  "(early fusion ships raw LiDAR points)."]
     if summary.lost_agents:
         lines += ["", "Lost agents: " + ", ".join(f"{c} (frame {f})" for c, f in sorted(summary.lost_agents.items()))]
     lines += ["", "## Methods", "",

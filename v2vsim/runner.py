@@ -24,6 +24,7 @@ from pathlib import Path
 from agents.common import agent_argv
 from v2vsim.comm.transport import TransportError, free_port, loopback_endpoint, open_session
 from v2vsim.config import Scenario
+from v2vsim.perception import check_scenario
 from v2vsim.sensing import ego_ids
 from v2vsim.traffic.base import cav_id
 
@@ -68,6 +69,7 @@ def run(sc: Scenario, out: Path, frames: int | None = None, remote_cavs: tuple[s
     run_id = run_id or uuid.uuid4().hex[:8]
     cavs = [cav_id(i) for i in range(sc.cavs.count)]
     egos = ego_ids(sc, cavs)
+    check_scenario(sc)
     out.mkdir(parents=True, exist_ok=True)
     try:
         if sc.transport.mode == "client":  # the router(s) must be reachable before anything starts

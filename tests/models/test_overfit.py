@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Iterator
 
+import pytest
 import torch
 
 from models.heads import AnchorTargetAssigner
@@ -55,7 +57,16 @@ def _to_frame(points: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
     return transform_points(points, inv)
 
 
-def test_tiny_pointpillars_pipeline_overfits_one_batch() -> None:
+@pytest.fixture
+def one_thread() -> Iterator[None]:
+    """One intra-op thread: with 2 cores and any other load, 2 OpenMP threads slow training ~5x here."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def test_tiny_pointpillars_pipeline_overfits_one_batch(one_thread: None) -> None:
     torch.manual_seed(0)
     gen = torch.Generator().manual_seed(0)
     model = build_cooperative("pointpillars", "fcooper", "tiny", bev_size_m=BEV)

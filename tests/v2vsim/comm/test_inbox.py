@@ -1,0 +1,68 @@
+"""The receiver side of the channel: latency decides which frame is fused, stale messages are not
+fused, the receiver's own message skips the channel, and zero pose noise changes nothing."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from v2vsim.comm.codec import Message
+from v2vsim.comm.inbox import Inbox
+from v2vsim.config import CommConfig, LatencyConfig, PoseNoiseConfig
+
+DT = 0.1
+
+
+def _msg(sender: str, frame: int, pose: tuple[float, float, float, float] = (1.0, 2.0, 0.0, 0.3)) -> Message:
+    return Message(kind="features", run_id="r", sender_id=sender, frame=frame, capture_time=frame * DT,
+                   sender_pose=pose, payload=np.zeros((2, 4, 4), np.float16))
+
+
+def _cfg(**kw: object) -> CommConfig:
+    return dataclasses.replace(CommConfig(bandwidth_mbps=None), **kw)
+
+
+def _run(inbox: Inbox, frames: int, senders: list[str]) -> list[dict[str, int]]:
+    """Offer each sender's frame-k message at t_k (lockstep) and record which frame is fusable at t_k."""
+    fused = []
+    for k in range(frames):
+        for s in senders:
+            inbox.offer(_msg(s, k), 100, k * DT, distance_m=10.0)
+        fused.append({s: m.frame for s, m in inbox.ready(k * DT + 1e-9).items()})
+    return fused
+
+
+def test_latency_delays_which_frame_is_fused() -> None:
+    inbox = Inbox(_cfg(latency_ms=LatencyConfig(mean=150.0)), seed=0, receiver="cav0", kind="features")
+    fused = _run(inbox, 6, ["cav0", "cav1"])
+    assert [f["cav0"] for f in fused] == [0, 1, 2, 3, 4, 5]  # the ego's own message has no channel
+    assert [f.get("cav1") for f in fused] == [None, None, 0, 1, 2, 3]  # 150 ms late at 10 Hz -> 2 frames old
+    assert inbox.stats.latency_percentile_ms(50) == 200.0  # send-to-fuse, in simulated time
+
+
+def test_stale_messages_are_not_fused_and_are_counted() -> None:
+    inbox = Inbox(_cfg(latency_ms=LatencyConfig(mean=250.0), max_age_ms=200.0), seed=0, receiver="cav0",
+                  kind="features")
+    fused = _run(inbox, 8, ["cav0", "cav1"])
+    assert all("cav1" not in f for f in fused)
+    assert inbox.stats.stale >= 4 and inbox.stats.delivered == 8
+
+
+def test_zero_pose_noise_is_bit_identical_and_noise_moves_the_pose() -> None:
+    quiet = Inbox(_cfg(), seed=0, receiver="cav0", kind="features")
+    m = _msg("cav1", 0, (1.234567891, -2.5, 0.0, 0.7))
+    assert quiet.sender_pose(m) == m.sender_pose
+    noisy = Inbox(_cfg(pose_noise=PoseNoiseConfig(xy_std_m=0.5, yaw_std_deg=2.0)), seed=0, receiver="cav0",
+                  kind="features")
+    assert noisy.sender_pose(m) != m.sender_pose
+    assert noisy.sender_pose(_msg("cav0", 0)) == _msg("cav0", 0).sender_pose  # own pose is known exactly
+
+
+def test_out_of_range_is_not_delivered_and_bytes_count_only_the_air() -> None:
+    inbox = Inbox(_cfg(range_m=50.0), seed=0, receiver="cav0", kind="features")
+    inbox.offer(_msg("cav1", 0), 1000, 0.0, distance_m=80.0)
+    inbox.offer(_msg("cav0", 0), 1000, 0.0, distance_m=0.0)
+    assert inbox.stats.out_of_range == 1 and inbox.stats.sent == 1
+    assert set(inbox.ready(0.0)) == {"cav0"}
+    assert inbox.take_bytes() == 1000 and inbox.take_bytes() == 0
