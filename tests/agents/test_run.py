@@ -20,7 +20,7 @@ import psutil
 import zenoh
 
 from v2vsim.comm.codec import Message, encode
-from v2vsim.comm.transport import free_port
+from v2vsim.comm.transport import Publisher, free_port
 
 REPO = Path(__file__).resolve().parents[2]
 SCENARIO = str(REPO / "scenarios" / "intersection.yaml")
@@ -163,8 +163,11 @@ def test_malformed_messages_are_rejected_over_a_router(tmp_path: Path) -> None:
                      "connect/endpoints": [endpoint]}.items():
             cfg.insert_json5(k, json.dumps(v))
         with zenoh.open(cfg) as session:
+            pubs = {s: Publisher(session, f"v2vsim/rogue1/features/{s}") for s in ("cav1", "cav9")}
+            for p in pubs.values():
+                assert p.wait_matched(30)  # the ego's subscription has reached us through the router
             for sender, data in _rogue_messages("rogue1"):
-                session.put(f"v2vsim/rogue1/features/{sender}", data)
+                pubs[sender].put(data)
             assert run.finish() == 0, "".join(run.log)
         m = _metrics(out)
         reasons = m["comm"]["rejected_reasons"]
