@@ -17,6 +17,7 @@ import torch
 
 from agents.common import START_TIMEOUT_S, AgentArgs, Bus, parse_agent_args, run_agent
 from v2vsim.comm.codec import Message, encode
+from v2vsim.gt import visible_actor_ids
 from v2vsim.perception import (
     body_frame_points,
     build_agent_encoder,
@@ -26,8 +27,9 @@ from v2vsim.perception import (
     late_outputs,
 )
 from v2vsim.perception import encode as encode_features
-from v2vsim.sensing import sense
+from v2vsim.sensing import SensorFrame, sense
 from v2vsim.sensors.scene import build_map_assets, build_scene
+from v2vsim.world import WorldState
 from v2vsim.world_io import static_from_bytes, world_from_bytes
 
 
@@ -91,10 +93,8 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
     return 0
 
 
-def _seen_actor_ids(world, sf) -> set[str]:  # noqa: ANN001
+def _seen_actor_ids(world: WorldState, sf: SensorFrame) -> set[str]:
     """Ids of the vehicles this CAV's sensors hit (ground truth for the visible-vehicle mask)."""
-    from v2vsim.gt import visible_actor_ids
-
     lidar = [sf.lidar] if sf.lidar is not None else []
     cams = [sf.cameras] if sf.cameras is not None else []
     return set(visible_actor_ids(lidar, cams, world))

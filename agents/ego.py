@@ -143,8 +143,7 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
             if not realtime:
                 _wait_messages(box, bus, k, present, kinds, lost)
             for cav in present:
-                if cav not in lost and bus.was_alive(f"cav.{cav}") and not bus.is_alive(f"cav.{cav}") \
-                        and not _left(box, cav):
+                if cav not in lost and bus.was_alive(f"cav.{cav}") and not bus.is_alive(f"cav.{cav}"):
                     lost[cav] = k
             for cav in lost:
                 stats.record_lost_agent(cav)
@@ -235,10 +234,6 @@ def _set_done(box: Mailbox) -> None:
 def _notify(box: Mailbox) -> None:
     with box.cond:
         box.cond.notify_all()
-
-
-def _left(box: Mailbox, cav: str) -> bool:
-    return False  # a CAV whose vehicle left is absent from the world, so it is never expected
 
 
 def _wait_world(box: Mailbox, k: int, realtime: bool) -> tuple[int, bytes] | None:

@@ -69,9 +69,8 @@ def voxelize(
     )  # fmt: skip
     pts, bidx, row, col = pts[keep], bidx[keep], row[keep], col[keep]
     lin = (bidx * cells + row) * cells + col  # [P'] linear pillar id
-    uniq, inv, counts = torch.unique(lin, sorted=True, return_inverse=True, return_counts=True)  # [K]
-    order = torch.sort(inv, stable=True).indices  # points grouped by pillar, input order inside
-    inv_sorted = inv[order]
+    lin_sorted, order = torch.sort(lin, stable=True)  # points grouped by pillar, input order inside
+    uniq, inv_sorted, counts = torch.unique_consecutive(lin_sorted, return_inverse=True, return_counts=True)  # [K]
     starts = torch.cumsum(counts, 0) - counts  # [K] first slot of each pillar
     rank = torch.arange(inv_sorted.numel(), device=device) - starts[inv_sorted]  # position in pillar
     cap = rank < max_points

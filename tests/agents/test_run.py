@@ -69,7 +69,10 @@ def _metrics(out: Path) -> dict:
 
 def test_run_writes_report_metrics_recording_and_plots(tmp_path: Path) -> None:
     out = tmp_path / "run"
-    run = Run("--frames", "4", "--out", str(out), "--set", "cavs.count=3", "--set", "comm.range_m=300")
+    key = tmp_path / "v2v.key"
+    key.write_text("a shared secret\n")
+    run = Run("--frames", "4", "--out", str(out), "--set", "cavs.count=3", "--set", "comm.range_m=300",
+              "--set", f"comm.auth.key_file={key}")  # every message signed and checked
     assert run.finish() == 0, "".join(run.log)
     m = _metrics(out)
     assert m["scenario"] == "intersection" and m["frames"] == 4 and m["cavs"] == 3 and m["modality"] == "lidar"

@@ -57,16 +57,16 @@ def _to_frame(points: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
     return transform_points(points, inv)
 
 
-@pytest.fixture
-def one_thread() -> Iterator[None]:
-    """One intra-op thread: with 2 cores and any other load, 2 OpenMP threads slow training ~5x here."""
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread() -> Iterator[None]:
+    """One intra-op thread: on 2 shared cores, 2 OpenMP threads under any other load run ~5x slower."""
     n = torch.get_num_threads()
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
 
 
-def test_tiny_pointpillars_pipeline_overfits_one_batch(one_thread: None) -> None:
+def test_tiny_pointpillars_pipeline_overfits_one_batch() -> None:
     torch.manual_seed(0)
     gen = torch.Generator().manual_seed(0)
     model = build_cooperative("pointpillars", "fcooper", "tiny", bev_size_m=BEV)
