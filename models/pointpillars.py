@@ -10,6 +10,11 @@ header halves the backbone map with stride-2 convs until it is about F cells ove
 (128 -> 64 -> 32 cells of 3.2 m over 102.4 m) and then resamples the central bev_size_m square
 onto the F x F fusion grid with an affine bilinear crop (align_corners=False), so the output cell
 centres coincide exactly with BevGrid(bev_size_m, F) cell centres (here a 2.3 % zoom).
+
+Input: a list (batch) of [P_i, 4] clouds x, y, z, intensity in the agent BODY frame (z = 0 on the
+ground; the caller adds the LiDAR mount height to LiDAR-frame z). Voxelisation is vectorised (one
+stable sort + unique_consecutive + scatter); there is no cap on the number of pillars (the dense
+pseudo-image holds any count) and at most `max_points` points per pillar are kept.
 """
 
 from __future__ import annotations
@@ -111,7 +116,13 @@ class PillarFeatureNet(nn.Module):
             dim=1,
         ).to(xyz.dtype)  # [K, 2]
         feat = torch.cat([pts, xyz - mean[pp], xyz[:, :2] - centre[pp]], dim=1)  # [Nk, 9]
-        x = F.relu(self.norm(self.linear(feat)))  # [Nk, C]
+        x = self.linear(feat)  # [Nk, C]
+        if self.training and x.shape[0] < 2:  # batch statistics need two points: use the running ones
+            x = F.batch_norm(x, self.norm.running_mean, self.norm.running_var, self.norm.weight, self.norm.bias,
+                             False, 0.0, self.norm.eps)
+        else:
+            x = self.norm(x)
+        x = F.relu(x)
         out = x.new_zeros(k, self.out_channels)
         return out.scatter_reduce(0, pp[:, None].expand(-1, self.out_channels), x, reduce="amax")  # [K, C]
 

@@ -77,14 +77,14 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     if args.what == "sensors":
         from v2vsim.bench_sensors import main as bench
 
-        bench()
-        return 0
+        return int(bench(list(args.rest)) or 0)
     import runpy
 
     script = Path(__file__).resolve().parents[1] / "benchmarks" / f"bench_{args.what}.py"
     if not script.is_file():
         print(f"v2vsim: error: {script} not found (benchmarks run from a source checkout)", file=sys.stderr)
         return 2
+    sys.argv = [str(script), *args.rest]
     runpy.run_path(str(script), run_name="__main__")
     return 0
 
@@ -128,6 +128,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("bench", help="benchmarks: sensors | models | comm")
     p.add_argument("what", choices=["sensors", "models", "comm"])
+    p.add_argument("rest", nargs=argparse.REMAINDER, help="options passed to the benchmark (see its --help)")
     p.set_defaults(func=_cmd_bench)
     return parser
 

@@ -138,3 +138,18 @@ def test_describe_models_tiny() -> None:
     table = format_models_table(rows)
     assert "pointpillars" in table and "cobevt" in table and "bracket" in table
     assert registry.format_models_table([]).startswith("name")
+
+
+@pytest.mark.parametrize("method", ["attfuse", "late"])
+def test_camera_pipeline(method: str) -> None:
+    torch.manual_seed(0)
+    model = build_cooperative("lara", method, "tiny").eval()
+    images, intr, extr = model.encoder.example_inputs(batch=2)  # 2 agents of one batch item
+    inputs = (images[None], intr[None], extr[None])  # [1, L=2, M, ...]
+    poses = torch.tensor([[[0.0, 0.0, 0.0], [5.0, 2.0, 0.4]]])
+    valid = torch.tensor([[True, True]])
+    with torch.no_grad():
+        out = model(inputs, poses, valid)
+        res = model.predict(out, poses, valid)
+    assert out["dynamic"].shape == (1, 2, 256, 256) and "det_cls" not in out
+    assert set(res) == {"vehicle", "road", "lane"} and res["lane"].shape == (1, 256, 256)
