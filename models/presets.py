@@ -55,7 +55,7 @@ PRESETS: dict[str, ModelPreset] = {
         pointpillars=PointPillarsConfig(),
         decoder_channels=(128, 64, 32),
         fusion_kwargs={
-            "cobevt": {"heads": 4, "window": 8, "blocks": 3, "mlp_dim": 256, "max_agents": 8},
+            "cobevt": {"heads": 4, "window": 8, "blocks": 3, "mlp_dim": 256, "max_agents": 16},
             "v2vnet": {"iterations": 2},
         },
     ),
@@ -73,7 +73,7 @@ PRESETS: dict[str, ModelPreset] = {
         ),
         decoder_channels=(32, 16, 16),
         fusion_kwargs={
-            "cobevt": {"heads": 2, "window": 8, "blocks": 1, "mlp_dim": 128, "max_agents": 8},
+            "cobevt": {"heads": 2, "window": 8, "blocks": 1, "mlp_dim": 128, "max_agents": 16},
             "v2vnet": {"iterations": 2},
         },
     ),

@@ -118,15 +118,32 @@ def _hook_shapes(module: nn.Module, names: list[str], run: Callable[[], object])
     return [(n, shapes[n]) for n in names if n in shapes]
 
 
-def _row(name: str, kind: str, module: nn.Module, stages: list[tuple[str, tuple]], **extra: Any) -> dict:
+def _row(name: str, kind: str, module: nn.Module, stages: list[tuple[str, tuple]], output: tuple | None,
+         **extra: Any) -> dict:
     return {
         "name": name,
         "kind": kind,
         "params": _params(module),
         "stages": [{"stage": s, "shape": list(shape)} for s, shape in stages],
-        "output": list(stages[-1][1]) if stages else None,
+        "output": list(output) if output is not None else None,
         **extra,
     }
+
+
+def _with_output(module: nn.Module, run: Callable[[], list[tuple[str, tuple]]]) -> tuple[list, tuple | None]:
+    """Run `run` (which calls module's forward) with a hook on the module itself; (its result, output shape)."""
+    seen: list[tuple] = []
+
+    def hook(_m: nn.Module, _i: object, out: object) -> None:
+        if isinstance(out, torch.Tensor):
+            seen.append(tuple(out.shape))
+
+    h = module.register_forward_hook(hook)
+    try:
+        stages = run()
+    finally:
+        h.remove()
+    return stages, (seen[-1] if seen else None)
 
 
 def describe_models(preset: str, agents: int = 4) -> list[dict]:
@@ -139,22 +156,25 @@ def describe_models(preset: str, agents: int = 4) -> list[dict]:
     rows: list[dict] = []
     for name, modality in MODALITY.items():
         enc = build_encoder(name, preset).eval()
-        rows.append(_row(name, f"encoder ({modality})", enc, enc.stage_shapes()))
+        stages, out = _with_output(enc, enc.stage_shapes)
+        rows.append(_row(name, f"encoder ({modality})", enc, stages, out))
     feats = torch.randn(1, agents, p.channels, p.cells, p.cells)
     valid = torch.ones(1, agents, dtype=torch.bool)
     for name in FUSION:
         fus = build_fusion(name, preset).eval()
         names = list(getattr(fus, "stage_names", [n for n, _ in fus.named_children()]))
-        stages = _hook_shapes(fus, names, lambda fus=fus: fus(feats, valid))
-        stages.append(("output", tuple(fus(feats, valid).shape)))
-        rows.append(_row(name, "fusion", fus, stages, agents=agents))
+        def run(fus: nn.Module = fus, names: list[str] = names) -> list[tuple[str, tuple]]:
+            return _hook_shapes(fus, names, lambda: fus(feats, valid))
+
+        stages, out = _with_output(fus, run)
+        rows.append(_row(name, "fusion", fus, stages, out, agents=agents))
     for modality in ("camera", "lidar"):
         heads = build_heads(modality, preset).eval()
         names = ["decoder.stages.0", "decoder.stages.1", "decoder.stages.2", "dynamic", "static"]
         if heads.detection is not None:
             names += ["detection.cls", "detection.reg"]
         stages = _hook_shapes(heads, names, lambda heads=heads: heads(feats[:, 0]))
-        rows.append(_row(f"heads-{modality}", "decoder+heads", heads, stages))
+        rows.append(_row(f"heads-{modality}", "decoder+heads", heads, stages, dict(stages)["dynamic"]))
     for name in METHODS:
         if name not in FUSION:  # the brackets: no module of their own
             rows.append({"name": name, "kind": "bracket", "params": 0, "stages": [], "output": None})
@@ -162,12 +182,18 @@ def describe_models(preset: str, agents: int = 4) -> list[dict]:
 
 
 def format_models_table(rows: list[dict]) -> str:
-    """Plain-text table of describe_models rows: name, kind, parameters, stage -> shape."""
-    lines = [f"{'name':<14} {'kind':<18} {'params':>12}  stages"]
+    """Plain-text table of describe_models rows: name, kind, parameters, stage=shape ... -> output shape."""
+
+    def dims(shape: list[int]) -> str:
+        return "x".join(str(d) for d in shape)
+
+    notes = {"early": "raw points merged in the ego frame -> encoder -> heads",
+             "late": "per-CAV outputs merged in the ego frame (max / rotated NMS)"}
+    lines = [f"{'name':<14} {'kind':<18} {'params':>12}  stages -> output"]
     for r in rows:
-        stages = ", ".join(f"{s['stage']}={'x'.join(str(d) for d in s['shape'])}" for s in r["stages"])
-        if not stages:
-            stages = {"early": "raw points merged in the ego frame -> encoder -> heads",
-                      "late": "per-CAV outputs merged in the ego frame (max / rotated NMS)"}.get(r["name"], "-")
-        lines.append(f"{r['name']:<14} {r['kind']:<18} {r['params']:>12,}  {stages}")
+        parts = [f"{s['stage']}={dims(s['shape'])}" for s in r["stages"]]
+        text = ", ".join(parts)
+        if r.get("output") is not None:
+            text = f"{text} -> {dims(r['output'])}" if text else f"-> {dims(r['output'])}"
+        lines.append(f"{r['name']:<14} {r['kind']:<18} {r['params']:>12,}  {text or notes.get(r['name'], '-')}")
     return "\n".join(lines)

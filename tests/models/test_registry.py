@@ -153,3 +153,15 @@ def test_camera_pipeline(method: str) -> None:
         res = model.predict(out, poses, valid)
     assert out["dynamic"].shape == (1, 2, 256, 256) and "det_cls" not in out
     assert set(res) == {"vehicle", "road", "lane"} and res["lane"].shape == (1, 256, 256)
+
+
+def test_cobevt_fuses_as_many_agents_as_a_scenario_allows() -> None:
+    """cavs.count goes up to 16: the FuseBEVT bias table must cover 16 agents."""
+    import torch
+
+    from models.registry import build_fusion
+
+    fusion = build_fusion("cobevt", "tiny").eval()
+    x = torch.randn(1, 16, 64, 8, 8)
+    with torch.no_grad():
+        assert fusion(x, torch.ones(1, 16, dtype=torch.bool)).shape == (1, 64, 8, 8)
