@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
 
 import pytest
 import torch
@@ -13,15 +12,6 @@ from models.fusion.early import merge_points_to_ego
 from models.fusion.late import late_fuse_boxes, late_fuse_probabilities
 from models.fusion.none import NoFusion
 from models.registry import FUSION, build_fusion
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread() -> Iterator[None]:
-    """One intra-op thread: on 2 shared cores, 2 OpenMP threads under any other load run ~5x slower."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 C, HW = 64, 16  # tiny channels; 16 cells keep every window size valid and the test fast
 SYMMETRIC = ["fcooper", "attfuse", "v2vnet", "disconet"]

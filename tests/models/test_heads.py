@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
 
 import pytest
 import torch
@@ -21,15 +20,6 @@ from models.heads import (
 from models.losses import detection_loss, dynamic_target, segmentation_loss, sigmoid_focal_loss, static_target
 from models.registry import build_heads
 from v2vsim.geometry import BevGrid
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread() -> Iterator[None]:
-    """One intra-op thread: on 2 shared cores, 2 OpenMP threads under any other load run ~5x slower."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 def test_table_a2_decoder_shapes_paper() -> None:

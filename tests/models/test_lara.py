@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
-from contextlib import contextmanager
 
 import numpy as np
 import pytest
@@ -102,19 +100,7 @@ def test_bev_latent_cross_attention_is_not_residual() -> None:
     torch.testing.assert_close(a, b)
 
 
-@contextmanager
-def one_thread() -> Iterator[None]:
-    """The training loop below is hundreds of tiny ops: with 2 threads on a busy 2-core machine OpenMP
-    waits made it ~6x slower (LaRa loop measured 21 s vs 3.5 s), so it runs on one thread, then restores."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
 
-
-@one_thread()
 def test_overfits_one_batch() -> None:
     """Gradients flow end to end: two samples with different images and BEV masks are fitted (the BEV
     queries are shared, so only the image path can tell them apart); loss falls >= 10x below

@@ -9,9 +9,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Iterator
 
-import pytest
 import torch
 
 from models.heads import AnchorTargetAssigner
@@ -57,13 +55,6 @@ def _to_frame(points: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
     return transform_points(points, inv)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread() -> Iterator[None]:
-    """One intra-op thread: on 2 shared cores, 2 OpenMP threads under any other load run ~5x slower."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 def test_tiny_pointpillars_pipeline_overfits_one_batch() -> None:

@@ -2,22 +2,11 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-
 import pytest
 import torch
 
 from models.pointpillars import build_pointpillars, voxelize
 from v2vsim.geometry import BevGrid
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread() -> Iterator[None]:
-    """One intra-op thread: on 2 shared cores, 2 OpenMP threads under any other load run ~5x slower."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 EXTENT, VOXEL, Z = 102.4, 0.4, (-1.0, 3.0)
 

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
-from contextlib import contextmanager
 
 import numpy as np
 import pytest
@@ -132,19 +130,7 @@ def test_resize_scales_intrinsics() -> None:
     assert math.isclose(u2, u1 * 128 / 200, rel_tol=1e-6) and math.isclose(v2, v1 * 128 / 150, rel_tol=1e-6)
 
 
-@contextmanager
-def one_thread() -> Iterator[None]:
-    """The training loop below is hundreds of tiny ops: with 2 threads on a busy 2-core machine OpenMP
-    waits made it ~6x slower (LaRa loop measured 21 s vs 3.5 s), so it runs on one thread, then restores."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
 
-
-@one_thread()
 def test_overfits_one_batch() -> None:
     """Gradients flow end to end: two samples with different images and BEV masks are fitted (the shared
     learnable BEV query alone cannot do that), loss falls >= 10x below min(initial, ln 2)."""
