@@ -26,13 +26,13 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from models.fax import Mlp
-from models.resnet import ResNet, record_stage_shapes
+from models.resnet import ResNet
 from models.sinbevt import (
     IMAGENET_MEAN,
     IMAGENET_STD,
+    CameraEncoderIntrospection,
     bev_cell_xy,
     camera_centres,
-    default_camera_rig,
     feature_rays,
     l2_normalize,
     resize_images,
@@ -235,8 +235,10 @@ class LatentStack(nn.Module):
         return latents
 
 
-class LaRa(nn.Module):
+class LaRa(CameraEncoderIntrospection, nn.Module):
     """LaRa camera encoder: forward(images, intrinsics, extrinsics) -> [B, C, F, F] BEV features."""
+
+    per_camera_stages = ("resnet.", "neck")
 
     stage_names: tuple[str, ...] = (
         "resnet.layer1", "resnet.layer2", "resnet.layer3", "neck", "encode", "process", "decode", "head"
@@ -296,22 +298,6 @@ class LaRa(nn.Module):
         f = self.config.out_cells
         return out.transpose(1, 2).reshape(b, -1, f, f)
 
-    # -- introspection --------------------------------------------------------------------------
-
-    def example_inputs(self, batch: int = 1, cameras: int | None = None) -> tuple[Tensor, Tensor, Tensor]:
-        """Random images at the simulator's raw camera size with the default 4-camera rig."""
-        m = cameras or self.config.cameras
-        hh, ww = self.config.raw_image_size
-        intr, extr = default_camera_rig(batch, m, hh, ww, self.config.fov_deg)
-        return torch.rand(batch, m, 3, hh, ww), intr, extr
-
-    def stage_shapes(self, inputs: Sequence[Tensor] | None = None) -> list[tuple[str, tuple[int, ...]]]:
-        """(stage name, output shape) for ``stage_names``; ResNet/neck outputs shown as (B, M, C, h, w)."""
-        images, intr, extr = inputs if inputs is not None else self.example_inputs()
-        b, m = images.shape[:2]
-        shapes = record_stage_shapes(self, self.stage_names, lambda: self(images, intr, extr))
-        per_cam = ("resnet.", "neck")
-        return [(n, (b, m, *s[1:]) if n.startswith(per_cam) else s) for n, s in shapes]
 
 
 def build_lara(preset: str, bev_size_m: float = 100.0, **overrides: object) -> LaRa:

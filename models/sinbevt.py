@@ -261,7 +261,31 @@ class SinBEVTStage(nn.Module):
 # --------------------------------------------------------------------------------------------------
 
 
-class SinBEVT(nn.Module):
+class CameraEncoderIntrospection:
+    """`example_inputs` and `stage_shapes` shared by the camera encoders (for `v2vsim models`).
+
+    Needs `config.cameras`, `config.raw_image_size`, `config.fov_deg`, `stage_names`, and
+    `per_camera_stages`: the stage-name prefixes whose outputs are per camera ([B*M, ...]).
+    """
+
+    per_camera_stages: tuple[str, ...] = ("resnet.",)
+
+    def example_inputs(self, batch: int = 1, cameras: int | None = None) -> tuple[Tensor, Tensor, Tensor]:
+        """Random images at the simulator's raw camera size with the default 4-camera rig."""
+        m = cameras or self.config.cameras  # type: ignore[attr-defined]
+        h, w = self.config.raw_image_size  # type: ignore[attr-defined]
+        intr, extr = default_camera_rig(batch, m, h, w, self.config.fov_deg)  # type: ignore[attr-defined]
+        return torch.rand(batch, m, 3, h, w), intr, extr
+
+    def stage_shapes(self, inputs: Sequence[Tensor] | None = None) -> list[tuple[str, tuple[int, ...]]]:
+        """(stage name, output shape) for `stage_names`; per-camera outputs shown as (B, M, C, h, w)."""
+        images, intr, extr = inputs if inputs is not None else self.example_inputs()
+        b, m = images.shape[:2]
+        shapes = record_stage_shapes(self, self.stage_names, lambda: self(images, intr, extr))  # type: ignore
+        return [(n, (b, m, *s[1:]) if n.startswith(self.per_camera_stages) else s) for n, s in shapes]
+
+
+class SinBEVT(CameraEncoderIntrospection, nn.Module):
     """SinBEVT (CoBEVT Table A2): forward(images, intrinsics, extrinsics) -> [B, C, F, F] BEV features."""
 
     def __init__(self, config: SinBEVTConfig, bev_size_m: float = 100.0) -> None:
@@ -329,19 +353,6 @@ class SinBEVT(nn.Module):
         "resnet.layer1", "resnet.layer2", "resnet.layer3", "stages.0", "stages.1", "stages.2"
     )
 
-    def example_inputs(self, batch: int = 1, cameras: int | None = None) -> tuple[Tensor, Tensor, Tensor]:
-        """Random images at the simulator's raw camera size with the default 4-camera rig."""
-        m = cameras or self.config.cameras
-        h, w = self.config.raw_image_size
-        intr, extr = default_camera_rig(batch, m, h, w, self.config.fov_deg)
-        return torch.rand(batch, m, 3, h, w), intr, extr
-
-    def stage_shapes(self, inputs: Sequence[Tensor] | None = None) -> list[tuple[str, tuple[int, ...]]]:
-        """(stage name, output shape) for ``stage_names``; ResNet outputs shown as (B, M, C, h, w)."""
-        images, intr, extr = inputs if inputs is not None else self.example_inputs()
-        b, m = images.shape[:2]
-        shapes = record_stage_shapes(self, self.stage_names, lambda: self(images, intr, extr))
-        return [(n, (b, m, *s[1:]) if n.startswith("resnet.") else s) for n, s in shapes]
 
 
 def build_sinbevt(preset: str, bev_size_m: float = 100.0, **overrides: object) -> SinBEVT:
