@@ -200,7 +200,7 @@ class Stop(Exception):
 
 
 def _raise_stop(signum: int, frame: object) -> None:
-    raise Stop(signal.Signals(signum).name)
+    raise Stop(signum)
 
 
 def run_agent(args: AgentArgs, role: str, ident: str, body: Callable[[Bus], int]) -> int:
@@ -220,8 +220,8 @@ def run_agent(args: AgentArgs, role: str, ident: str, body: Callable[[Bus], int]
     bus = Bus(session, args.run_id, f"{role}.{ident}")
     try:
         return body(bus)
-    except Stop:
-        return 130
+    except Stop as stop:
+        return 128 + int(stop.args[0])  # the shell's convention for "ended by signal N"
     except TimeoutError as e:
         print(f"v2vsim-{role} {ident}: error: {e}", file=sys.stderr)
         return 1

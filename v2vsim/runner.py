@@ -140,9 +140,11 @@ def _watch(children: list[Child]) -> int:
             return 0
         for c in children:
             rc = c.proc.poll()
-            if c.name.startswith("cav.") and rc == 2:  # a CAV that cannot even open its transport
-                print(f"v2vsim: error: {c.name} could not start (exit 2)", file=sys.stderr)
-                return 2
+            # A CAV killed by a signal is a dead agent the ego copes with; one that exits with an
+            # error is a failure to report (it would otherwise leave the driver waiting for it).
+            if c.name.startswith("cav.") and rc is not None and 0 < rc < 128:
+                print(f"v2vsim: error: {c.name} exited with code {rc}", file=sys.stderr)
+                return 2 if rc == 2 else 1
         time.sleep(0.2)
 
 
