@@ -71,8 +71,9 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
         actor = world.actor(me)
         if actor is None:
             if seen:
-                bus.put("left", json.dumps({"frame": world.frame}).encode())
-                return 0  # our vehicle left the simulation
+                print(f"v2vsim-cav {me}: vehicle left the simulation at frame {world.frame}; agent stops",
+                      file=sys.stderr, flush=True)
+                return 0
             continue
         seen = True
         scene = build_scene(world, assets)

@@ -230,3 +230,16 @@ def test_realtime_clock_runs_on_the_wall_clock(tmp_path: Path) -> None:
     m = _metrics(out)
     assert m["clock"] == "realtime" and 0 < m["frames"] <= 30
     assert 0.5 < m["real_time_factor"] < 1.3  # simulated time advanced with the wall clock
+
+
+def test_a_cav_that_leaves_ends_its_agent_and_the_run_goes_on(tmp_path: Path) -> None:
+    """In scenarios/intersection.yaml (seed 0) cav0 leaves the network at frame 307 and cav1 at 372."""
+    out = tmp_path / "run"
+    run = Run("--frames", "330", "--out", str(out), "--set", "cavs.count=2", "--set", "cavs.ego=[cav1]",
+              "--methods", "none", "--set", "output.rerun=false")
+    assert run.finish() == 0, "".join(run.log)
+    m = _metrics(out)
+    assert m["ego"] == "cav1" and m["frames"] == 330 and m["status"] == "complete"
+    assert m["lost_agents"] == {}  # leaving is not dying
+    assert m["comm"]["sent"] == 307  # cav0's messages for frames 0..306, none after it left
+    assert any("cav0: vehicle left the simulation at frame 307; agent stops" in line for line in run.log)
