@@ -23,10 +23,14 @@ Other mappings:
 - the env never removes controlled vehicles; a CAV is dropped here once it has driven past the
   end of its exit lane, and it never comes back.
 
-CAV driving: every CAV gets the env's IDLE meta-action each step. highway-env's controlled
-vehicles do not brake for anyone (the env exempts them from its right-of-way rule, they are
-the agents it expects to learn), so CAVs from crossing arms often collide at the junction and
-stand there (`crashed`); they stay in the WorldState, as in the env.
+CAV driving: the env's controlled vehicles are MDP vehicles that brake for no one (its
+right-of-way rule exempts them: they are the agents it expects to learn), so with a fixed
+action CAVs from crossing arms collided at the junction within 5 s. After reset each CAV is
+swapped, in place in the env's road and controlled-vehicle lists, for an IDM/MOBIL vehicle on
+the same route: it drives like background traffic and yields under the env's rule (the
+meta-actions the env still sends are ignored by IDM vehicles). highway-env's own rule is not
+collision-free: over seeds 0-4 and 200 frames, 4 of 20 CAVs still crashed (vs. most before);
+crashed vehicles stay in the WorldState, as in the env.
 """
 
 from __future__ import annotations
@@ -173,7 +177,23 @@ class HighwayEnvBackend(BackendBase):
                                      or np.linalg.norm(o.position - v.position) > 10.0]
             # Own destinations (the env may draw the CAV's own arm): the other arms in turn.
             v.plan_route_to(f"o{(arm + 1 + i % 3) % 4}")
+        self._drive_with_idm(cavs)
         return self._state()
+
+    def _drive_with_idm(self, cavs: list[Any]) -> None:
+        """Swap each controlled MDP vehicle for an IDM vehicle on its route (see module doc)."""
+        from highway_env.vehicle.behavior import IDMVehicle  # imported with the env (see _import_env)
+
+        env = self._env
+        idm_cavs = []
+        for v in cavs:
+            idm = IDMVehicle.create_from(v)  # copies position, heading, speed, target lane and route
+            env.road.vehicles[env.road.vehicles.index(v)] = idm
+            self._names[id(idm)] = (idm, self._names.pop(id(v))[1])
+            idm_cavs.append(idm)
+        env.controlled_vehicles = idm_cavs
+        for action_type, idm in zip(env.action_type.agents_action_types, idm_cavs, strict=True):
+            action_type.controlled_vehicle = idm
 
     def step(self) -> WorldState:
         """One env step (1/rate_hz) with each CAV's meta-action."""
