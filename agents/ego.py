@@ -182,7 +182,7 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
         summary.status = status
         summary.wall_s = time.monotonic() - t_start
         summary.lost_agents = dict(lost)
-        write_outputs(out_dir, summary, scores, stats, {k: ib.stats for k, ib in inboxes.items()}, iou_fn)
+        write_outputs(out_dir, summary, scores, stats, {kind: ib.stats for kind, ib in inboxes.items()}, iou_fn)
         if recorder is not None:
             recorder.close()
     return 0
