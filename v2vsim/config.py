@@ -143,7 +143,6 @@ class CommConfig:
     pose_noise: PoseNoiseConfig = field(default_factory=PoseNoiseConfig)
     compression: Literal["none", "zlib"] = "none"
     channel_compression: int = _f(1, "1 (off) or a reduction ratio such as 8, 16, 32, 64", _pos)
-    compensate_latency: bool = False
     auth: AuthConfig = field(default_factory=AuthConfig)
 
 
