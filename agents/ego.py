@@ -320,7 +320,7 @@ def _collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str],
             x, y, z, yaw = inboxes[kind].sender_pose(msg)
             rel[i] = relative_pose(ego_pose, Pose(x, y, z, yaw))
             if kind == "features":
-                inp.features[s] = msg.payload.astype(np.float32)
+                inp.features[s] = msg.payload  # float16 [C/r, F, F]; decompress() makes it float32 [C, F, F]
             elif kind == "points":
                 inp.points[s] = msg.payload.astype(np.float32)
             else:
