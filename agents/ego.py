@@ -23,10 +23,10 @@ import torch
 
 from agents.cav import read_key
 from agents.common import START_TIMEOUT_S, AgentArgs, Bus, Stop, parse_agent_args, progress_line, run_agent
-from models.nms import rotated_iou_matrix
 from v2vsim.comm.codec import RejectedMessage, decode
 from v2vsim.comm.inbox import Inbox, distance
 from v2vsim.comm.stats import CommStats
+from v2vsim.evaluate import box_iou, fuse_and_score
 from v2vsim.geometry import Pose, relative_pose
 from v2vsim.gt import bev_ground_truth, gt_boxes
 from v2vsim.metrics import ApAccumulator, MethodScore
@@ -36,9 +36,8 @@ from v2vsim.perception import (
     build_compressor,
     build_method_models,
     decompress,
-    predict,
+    method_checkpoints,
     runnable_methods,
-    weights_path,
 )
 from v2vsim.recording import Recorder
 from v2vsim.report import RunSummary, write_outputs
@@ -47,10 +46,6 @@ from v2vsim.world import WorldState
 from v2vsim.world_io import static_from_bytes, world_from_bytes
 
 HANG_TIMEOUT_S = 60.0  # a live CAV that sends nothing for this long is treated as lost
-
-
-def iou_fn(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return rotated_iou_matrix(torch.from_numpy(a).float(), torch.from_numpy(b).float()).numpy()
 
 
 class Mailbox:
@@ -118,7 +113,9 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
     ego_poses: dict[int, Pose] = {}
     out_dir = Path(args.out) / ("" if me == args.egos[0] else f"ego_{me}")
     recorder = Recorder(out_dir / "recording.rrd", sc, list(models)) if sc.output.rerun else None
-    summary = RunSummary(scenario=sc, ego=me, methods=list(models), untrained=weights_path(sc) is None,
+    checkpoints = method_checkpoints(sc, tuple(models))
+    summary = RunSummary(scenario=sc, ego=me, methods=list(models),
+                         untrained=all(v is None for v in checkpoints.values()),
                          skipped=[m for m in methods if m not in models])
     bus.ready()
     t_start = time.monotonic()
@@ -152,18 +149,9 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
             gt = bev_ground_truth(world, me, sc.bev, visible, assets=assets)
             boxes_gt, ids = gt_boxes(world, me, sc.bev)
             boxes_gt = boxes_gt[[i in visible for i in ids]] if len(ids) else boxes_gt
-            preds = {}
-            for m, model in models.items():
-                pred = predict(m, model, inp, sc.bev.cells)
-                if pred is None:
-                    continue
-                preds[m] = pred
-                s = scores[m]
-                s.add_segmentation(pred.probs, gt)
-                s.fusion_ms.append(pred.ms)
-                s.bytes.append(_bytes_for(m, inboxes))
-                if s.boxes is not None and pred.boxes is not None:
-                    s.boxes.add(pred.boxes[:, :5], pred.boxes[:, 5], boxes_gt)
+            preds = fuse_and_score(models, inp, sc.bev.cells, gt, boxes_gt, scores)
+            for m in preds:
+                scores[m].bytes.append(_bytes_for(m, inboxes))
             for ib in inboxes.values():
                 ib.take_bytes()
             if recorder is not None:
@@ -182,7 +170,7 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
         summary.status = status
         summary.wall_s = time.monotonic() - t_start
         summary.lost_agents = dict(lost)
-        write_outputs(out_dir, summary, scores, stats, {kind: ib.stats for kind, ib in inboxes.items()}, iou_fn)
+        write_outputs(out_dir, summary, scores, stats, {kind: ib.stats for kind, ib in inboxes.items()}, box_iou)
         if recorder is not None:
             recorder.close()
     return 0

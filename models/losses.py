@@ -62,3 +62,16 @@ def detection_loss(
     else:
         reg_loss = reg_f.sum() * 0.0
     return {"cls": cls_loss, "reg": reg_loss, "total": cls_loss + reg_weight * reg_loss}
+
+
+def dense_focal_loss(logits: Tensor, target: Tensor, alpha: float = 0.5, gamma: float = 2.0) -> Tensor:
+    """Focal loss (Lin et al. 2017) over a 2-class segmentation: logits [B, 2, H, W], target [B, H, W]
+    in {0, 1, IGNORE_INDEX}; summed over the cells that count and normalised by the positive cells
+    (as the detection focal loss), so that a sparse class is not drowned by the background."""
+    care = target != IGNORE_INDEX
+    t = target.clamp(min=0)
+    logp = torch.log_softmax(logits, dim=1).gather(1, t[:, None]).squeeze(1)  # log p_t [B, H, W]
+    a_t = torch.where(t == 1, torch.full_like(logp, alpha), torch.full_like(logp, 1 - alpha))
+    loss = -a_t * (1 - logp.exp()) ** gamma * logp
+    n_pos = ((t == 1) & care).sum().clamp(min=1).to(loss.dtype)
+    return torch.where(care, loss, torch.zeros_like(loss)).sum() / n_pos

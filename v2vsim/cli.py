@@ -65,6 +65,46 @@ def _cmd_frame(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_dataset(args: argparse.Namespace) -> int:
+    from v2vsim.data.layout import DatasetError
+    from v2vsim.data.record import parse_seeds, record_dataset
+
+    try:
+        seeds = parse_seeds(args.seeds)
+        out = record_dataset(args.scenario, seeds, args.frames, Path(args.out), split=args.split,
+                             overrides=tuple(args.overrides), cameras=args.cameras)
+    except (ValueError, DatasetError) as e:
+        print(f"v2vsim: error: {e}", file=sys.stderr)
+        return 2
+    print(f"dataset: {out}/manifest.json")
+    return 0
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    from v2vsim.data.layout import DatasetError
+    from v2vsim.training.train import SPECS, TrainArgs, command_line, main_train
+
+    overrides = {k: getattr(args, k) for k in ("epochs", "samples_per_epoch", "batch", "lr", "val_samples")
+                 if getattr(args, k) is not None}
+    targs = TrainArgs(data=Path(args.data), stage=args.stage, out=Path(args.out), work=Path(args.work),
+                      device=args.device, threads=args.threads, seed=args.seed, resume=args.resume,
+                      overrides=tuple(overrides.items()), command=command_line(sys.argv[2:] if args.argv is None
+                                                                                 else args.argv))
+    assert set(overrides) <= set(SPECS["single"].__dataclass_fields__)
+    if args.device.startswith("cuda"):
+        import torch
+
+        if not torch.cuda.is_available():
+            print("v2vsim: error: --device cuda: no CUDA device here (this torch build: "
+                  f"{torch.__version__}); use --device cpu", file=sys.stderr)
+            return 2
+    try:
+        return main_train(targs)
+    except (ValueError, DatasetError) as e:
+        print(f"v2vsim: error: {e}", file=sys.stderr)
+        return 2
+
+
 def _cmd_models(args: argparse.Namespace) -> int:
     from models.registry import describe_models, format_models_table
 
@@ -120,6 +160,33 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--at", type=float, required=True, help="simulated seconds after warm-up")
     p.add_argument("--out", required=True, help="output directory")
     p.set_defaults(func=_cmd_frame)
+
+    p = sub.add_parser("dataset", help="record runs as a training dataset (docs/dataset.md)")
+    _scenario_args(p)
+    p.add_argument("--seeds", required=True, help="seeds, A-B (inclusive) or A,B,C")
+    p.add_argument("--frames", type=int, required=True, help="frames per seed")
+    p.add_argument("--out", required=True, help="dataset directory (runs are added to its manifest)")
+    p.add_argument("--split", default="train", choices=["train", "val", "eval"],
+                   help="split of these seeds; a scenario's seeds may belong to one split only")
+    p.add_argument("--cameras", action="store_true", help="also record the four camera images of every CAV")
+    p.set_defaults(func=_cmd_dataset)
+
+    p = sub.add_parser("train", help="train the LiDAR model zoo, stage by stage (README 'Training')")
+    p.add_argument("--data", required=True, help="dataset directory written by `v2vsim dataset`")
+    p.add_argument("--stage", default="all",
+                   help="all | single | cache | early | attfuse | fcooper | v2vnet | cobevt | disconet")
+    p.add_argument("--out", default="models/weights", help="zoo directory: manifest.json + <encoder>_<preset>/")
+    p.add_argument("--work", default="runs/train", help="checkpoints and the feature cache (resumable)")
+    p.add_argument("--resume", action="store_true", help="continue the stage from its last checkpoint")
+    p.add_argument("--device", default="cpu", help="cpu (default) or cuda")
+    p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--epochs", type=int, default=None, help="override the stage's default")
+    p.add_argument("--samples-per-epoch", type=int, default=None, help="override the stage's default")
+    p.add_argument("--batch", type=int, default=None, help="override the stage's default")
+    p.add_argument("--lr", type=float, default=None, help="override the stage's default (peak, one-cycle)")
+    p.add_argument("--val-samples", type=int, default=None, help="validation samples after each epoch")
+    p.set_defaults(func=_cmd_train, argv=None)
 
     p = sub.add_parser("models", help="list every encoder and fusion method: parameters, stage shapes")
     p.add_argument("--preset", choices=["tiny", "paper"], default="tiny")

@@ -1,9 +1,10 @@
 """Models as the running simulator uses them: the CAV side (encode, late outputs) and the ego side
 (warp + fuse + decode with every method), built by name from the scenario's `perception` section.
 
-Weights: `perception.weights: auto` loads models/weights/<encoder>_<preset>.pt when it exists;
-without a checkpoint every process builds the same randomly initialised models from the scenario
-seed (so CAV encoders and the ego agree), and the report says the weights are untrained.
+Weights: `perception.weights: auto` loads the zoo's checkpoints (models.zoo: models/weights/
+<encoder>_<preset>/, verified against manifest.json); where none ship, every process builds the same
+randomly initialised models from the scenario seed (so CAV encoders and the ego agree), and the
+report says the weights are untrained.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from models import zoo
 from models.compression import ChannelCompressor
 from models.fusion.early import merge_points_to_ego
 from models.fusion.late import late_fuse_boxes, late_fuse_probabilities
@@ -26,47 +28,77 @@ from models.registry import build_cooperative, build_encoder, is_intermediate
 from v2vsim.config import ConfigError, Scenario
 from v2vsim.sensing import SensorFrame
 
-WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "models" / "weights"
 
+def zoo_for(sc: Scenario) -> tuple[Path, dict] | None:
+    """(zoo root, manifest entry) of the checkpoints the scenario asks for; None = seeded random weights.
 
-def weights_path(sc: Scenario) -> Path | None:
-    """The checkpoint the scenario asks for, or None for seeded random initialisation."""
+    `perception.weights`: "auto" = models/weights/ when it ships this encoder/preset (else random),
+    "none" = random, or a path to a zoo folder with its own manifest.json (as `v2vsim train --out` writes).
+    """
     spec = sc.perception.weights
     if spec == "none":
         return None
-    if spec == "auto":
-        p = WEIGHTS_DIR / f"{sc.perception.encoder}_{sc.perception.preset}.pt"
-        return p if p.is_file() else None
-    p = Path(spec)
-    if not p.is_absolute():
-        p = Path(sc.source).parent / p
-    if not p.is_file():
-        raise ConfigError(f"{sc.source}: perception.weights: checkpoint not found: {p}")
-    return p
+    root = zoo.WEIGHTS_DIR
+    if spec != "auto":
+        root = Path(spec)
+        if not root.is_absolute():
+            root = Path(sc.source).parent / root
+        if not (root / "manifest.json").is_file():
+            raise ConfigError(f"{sc.source}: perception.weights: no zoo manifest at {root / 'manifest.json'}; "
+                              "allowed: 'auto', 'none' or a folder written by `v2vsim train --out`")
+    try:
+        entry = zoo.zoo_entry(sc.perception.encoder, sc.perception.preset, root)
+    except zoo.ZooError as e:
+        raise ConfigError(str(e)) from None
+    if entry is None:
+        if spec != "auto":
+            raise ConfigError(f"{sc.source}: perception.weights: {root} has no "
+                              f"{zoo.zoo_name(sc.perception.encoder, sc.perception.preset)} checkpoints")
+        return None
+    return root, entry
+
+
+def method_checkpoints(sc: Scenario, methods: tuple[str, ...]) -> dict[str, str | None]:
+    """Checkpoint file each method loads (relative to the zoo root), None where weights are random."""
+    z = zoo_for(sc)
+    out: dict[str, str | None] = {}
+    for m in methods:
+        f = None if z is None else zoo.method_file(z[1], m, z[0], sc.perception.encoder, sc.perception.preset)
+        out[m] = None if f is None else str(f.relative_to(z[0]))
+    return out
+
+
+def _state(sc: Scenario, method: str) -> dict | None:
+    """Verified state_dict of `method`'s checkpoint (None: random weights); ConfigError when broken."""
+    z = zoo_for(sc)
+    if z is None:
+        return None
+    f = zoo.method_file(z[1], method, z[0], sc.perception.encoder, sc.perception.preset)
+    if f is None:
+        return None
+    try:
+        return zoo.load_checkpoint(f, z[1])
+    except zoo.ZooError as e:
+        raise ConfigError(str(e)) from None
 
 
 def _seed(sc: Scenario, what: str) -> None:
     torch.manual_seed(sc.seed * 1_000_003 + zlib.crc32(what.encode()))
 
 
-def _load(module: nn.Module, checkpoint: dict | None, prefix: str) -> None:
-    if checkpoint is None:
+def _load(module: nn.Module, state: dict | None, prefix: str) -> None:
+    if state is None:
         return
-    state = {k[len(prefix):]: v for k, v in checkpoint.items() if k.startswith(prefix)}
-    if state:
-        module.load_state_dict(state)
-
-
-def _checkpoint(sc: Scenario) -> dict | None:
-    p = weights_path(sc)
-    return None if p is None else torch.load(p, map_location="cpu", weights_only=True)
+    sub = {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}
+    if sub:
+        module.load_state_dict(sub)
 
 
 def build_agent_encoder(sc: Scenario) -> nn.Module:
     """The encoder every CAV runs; identical in every process for a given scenario."""
     _seed(sc, "encoder")
     enc = build_encoder(sc.perception.encoder, sc.perception.preset, bev_size_m=sc.bev.size_m)
-    _load(enc, _checkpoint(sc), "encoder.")
+    _load(enc, _state(sc, "none"), "encoder.")
     return enc.eval()
 
 
@@ -85,7 +117,8 @@ def check_scenario(sc: Scenario) -> None:
     if not runnable_methods(sc):
         raise ConfigError(f"{sc.source}: perception.methods: nothing to run for modality "
                           f"{sc.perception.modality!r} (early fusion needs LiDAR)")
-    weights_path(sc)
+    for m in runnable_methods(sc):  # every checkpoint a process will load: verified before any starts
+        _state(sc, m)
 
 
 def build_compressor(sc: Scenario, channels: int) -> ChannelCompressor | None:
@@ -94,8 +127,7 @@ def build_compressor(sc: Scenario, channels: int) -> ChannelCompressor | None:
     if ratio == 1:
         return None
     _seed(sc, "compressor")
-    comp = ChannelCompressor(channels, ratio)
-    _load(comp, _checkpoint(sc), "compressor.")
+    comp = ChannelCompressor(channels, ratio)  # not in the zoo yet: seeded random in every process
     return comp.eval()
 
 
@@ -114,14 +146,17 @@ def decompress(comp: ChannelCompressor | None, payload: np.ndarray) -> np.ndarra
 
 def build_method_models(sc: Scenario, encoder: nn.Module, methods: tuple[str, ...]) -> dict[str, nn.Module]:
     """One CooperativePerception per method, all sharing `encoder` (every method fuses the same messages)."""
-    ckpt = _checkpoint(sc)
     out = {}
     for m in methods:
         _seed(sc, f"method:{m}")
         model = build_cooperative(sc.perception.encoder, m, sc.perception.preset, bev_size_m=sc.bev.size_m)
-        model.encoder = encoder
-        _load(model.fusion, ckpt, f"{m}.fusion.")
-        _load(model.heads, ckpt, f"{m}.heads.")
+        state = _state(sc, m)
+        if m == "early":  # early fusion's encoder runs at the ego on merged clouds: its own weights
+            _load(model.encoder, state, "encoder.")
+        else:
+            model.encoder = encoder
+        _load(model.fusion, state, "fusion.")
+        _load(model.heads, state, "heads.")
         out[m] = model.eval()
     return out
 

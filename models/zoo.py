@@ -1,0 +1,110 @@
+"""The model zoo: shipped checkpoints in models/weights/<encoder>_<preset>/ and their manifest.
+
+    models/weights/manifest.json
+      {"format": "v2vsim-zoo", "version": 1,
+       "zoos": {"pointpillars_tiny": {
+           "methods": {"none": "single.pt", "late": "single.pt", "cobevt": "cobevt.pt", ...},
+           "files": {"cobevt.pt": {"sha256": ..., "bytes": ..., "stage": ..., "command": ...,
+                                   "data": {...}, "wall_s": ..., "validation": {...}}, ...}}}}
+
+A checkpoint file is a dict {"format": "v2vsim-weights", "encoder", "preset", "stage", "methods",
+"config", "state_dict"}; state_dict keys are prefixed "encoder.", "fusion.", "heads.".
+Every file is checked against its sha256 before it is loaded.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import torch
+
+WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+MANIFEST = "manifest.json"
+REBUILD = "make zoo  (or the stage's own command in the manifest; see README 'Training')"
+
+
+class ZooError(Exception):
+    """A missing or corrupted checkpoint: names the file and the command that rebuilds it."""
+
+
+def sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def zoo_name(encoder: str, preset: str) -> str:
+    return f"{encoder}_{preset}"
+
+
+def read_manifest(root: Path = WEIGHTS_DIR) -> dict:
+    path = root / MANIFEST
+    if not path.is_file():
+        return {"format": "v2vsim-zoo", "version": 1, "zoos": {}}
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise ZooError(f"{path}: not valid JSON ({e}); restore it from git or rebuild with: {REBUILD}") from None
+
+
+def write_manifest(doc: dict, root: Path = WEIGHTS_DIR) -> None:
+    root.mkdir(parents=True, exist_ok=True)
+    tmp = root / (MANIFEST + ".tmp")
+    tmp.write_text(json.dumps(doc, indent=1, sort_keys=False) + "\n")
+    tmp.replace(root / MANIFEST)
+
+
+def zoo_entry(encoder: str, preset: str, root: Path = WEIGHTS_DIR) -> dict | None:
+    """The manifest entry of one encoder/preset, or None when no checkpoints ship for it."""
+    return read_manifest(root)["zoos"].get(zoo_name(encoder, preset))
+
+
+def method_file(entry: dict, method: str, root: Path, encoder: str, preset: str) -> Path | None:
+    name = entry["methods"].get(method)
+    return None if name is None else root / zoo_name(encoder, preset) / name
+
+
+def load_checkpoint(path: Path, entry: dict) -> dict:
+    """A verified checkpoint's state_dict; ZooError naming the file and the rebuild command otherwise."""
+    info = entry["files"].get(path.name)
+    command = (info or {}).get("command", REBUILD)
+    if not path.is_file():
+        raise ZooError(f"{path}: checkpoint missing; rebuild it with: {command}")
+    if info is None:
+        raise ZooError(f"{path}: not listed in {path.parent.parent / MANIFEST}; rebuild with: {REBUILD}")
+    digest = sha256(path)
+    if digest != info["sha256"]:
+        raise ZooError(f"{path}: sha256 {digest[:12]}… does not match the manifest's {info['sha256'][:12]}… "
+                       f"(corrupted or replaced); rebuild it with: {command}")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # noqa: BLE001 - any unpickling failure is a corrupted file
+        raise ZooError(f"{path}: cannot be read ({e}); rebuild it with: {command}") from None
+    if not isinstance(ckpt, dict) or ckpt.get("format") != "v2vsim-weights":
+        raise ZooError(f"{path}: not a v2vsim checkpoint; rebuild it with: {command}")
+    return ckpt["state_dict"]
+
+
+def save_checkpoint(path: Path, state_dict: dict, *, encoder: str, preset: str, stage: str, methods: list[str],
+                    config: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    torch.save({"format": "v2vsim-weights", "encoder": encoder, "preset": preset, "stage": stage,
+                "methods": methods, "config": config,
+                "state_dict": {k: v.detach().cpu().clone() for k, v in state_dict.items()}}, tmp)
+    tmp.replace(path)
+
+
+def register(path: Path, *, encoder: str, preset: str, methods: list[str], info: dict,
+             root: Path = WEIGHTS_DIR) -> None:
+    """Add (or replace) a checkpoint file in the manifest, with its sha256 and size."""
+    doc = read_manifest(root)
+    entry = doc["zoos"].setdefault(zoo_name(encoder, preset), {"methods": {}, "files": {}})
+    entry["files"][path.name] = {"sha256": sha256(path), "bytes": path.stat().st_size, **info}
+    for m in methods:
+        entry["methods"][m] = path.name
+    write_manifest(doc, root)

@@ -1,0 +1,197 @@
+"""PyTorch view of a recorded dataset: one sample = one frame seen by one CAV as the ego.
+
+A sample holds what `CooperativePerception.forward` takes (per-agent LiDAR clouds, relative poses,
+valid flags; ego first, then the other CAVs within `range_m` of the ego, nearest first) and the
+targets on the ego's BEV grid. Frames are read lazily from their .npz files.
+
+`delays`: frames of V2V delay drawn per sample for the neighbours (0 = same frame). A neighbour
+delayed by d contributes its frame k-d data warped with its frame k-d pose, while targets are of
+frame k: the misalignment a late message causes in a run (DESIGN.md "Latency matters through pose").
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+from torch.utils.data import Dataset
+
+from v2vsim.data.layout import DatasetError, frame_path, read_manifest, runs_of, unpack_masks
+from v2vsim.geometry import Pose, relative_pose
+
+
+@dataclass(frozen=True)
+class SampleKey:
+    run: str
+    frame: int
+    ego: str
+
+
+class FrameStore:
+    """Reads frames of one dataset lazily (npz members are inflated on access)."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = Path(root)
+        self.manifest = read_manifest(self.root)
+        self.runs: dict[str, dict] = {}
+        for r in self.manifest["runs"]:
+            meta = self.root / r["name"] / "run.json"
+            if not meta.is_file():
+                raise DatasetError(f"{meta}: missing (the run listed in the manifest was not fully written)")
+            self.runs[r["name"]] = {**r, **json.loads(meta.read_text())}
+
+    def frame(self, run: str, k: int) -> np.lib.npyio.NpzFile:
+        p = frame_path(self.root / run, k)
+        if not p.is_file():
+            raise DatasetError(f"{p}: frame file missing")
+        return np.load(p)
+
+    def keys(self, split: str, egos: str = "all", stride: int = 1) -> list[SampleKey]:
+        """Every (run, frame, ego) of a split; egos "all" (each CAV present) or "first" (cav0 only)."""
+        out = []
+        for r in runs_of(self.manifest, split):
+            for k in range(0, r["frames"], stride):
+                with self.frame(r["name"], k) as f:
+                    cavs = [str(c) for c in f["cavs"]]
+                for c in (cavs if egos == "all" else cavs[:1]):
+                    out.append(SampleKey(r["name"], k, c))
+        return out
+
+
+def _pose(poses: np.ndarray, cavs: list[str], c: str) -> Pose:
+    return Pose(*(float(v) for v in poses[cavs.index(c)]))
+
+
+def select_agents(cavs: list[str], poses: np.ndarray, ego: str, range_m: float, max_agents: int) -> list[str]:
+    """The ego, then the other CAVs within range_m of it (nearest first), at most max_agents in all."""
+    e = _pose(poses, cavs, ego)
+    others = []
+    for c in cavs:
+        if c == ego:
+            continue
+        p = _pose(poses, cavs, c)
+        d = math.hypot(p.x - e.x, p.y - e.y)
+        if d <= range_m:
+            others.append((d, c))
+    return [ego] + [c for _, c in sorted(others)][: max_agents - 1]
+
+
+class CooperativeDataset(Dataset):
+    """Samples of one split. Each item is a dict:
+
+    "points": list of [P, 4] float32 clouds (ego first) — LiDAR inputs in each agent's body frame
+    "agents": list of agent ids; "rel_poses" [L, 3] (dx, dy, dyaw) in the ego frame; "valid" [L] bool
+    "agent_frames": frame index each agent's data comes from (k - delay)
+    "vehicle" [S, S] bool: vehicles visible to some CAV (the scored target); "dynamic": all vehicles;
+    "visible_self": vehicles the ego's own sensors saw; "road", "lane" [S, S] bool
+    "boxes" [K, 5] visible GT boxes; "boxes_hidden" [J, 5] the others (ego frame); "boxes_self" /
+    "boxes_self_hidden": the same split by what the ego's own sensors saw
+    "key": SampleKey
+    """
+
+    def __init__(self, root: Path | str, split: str, max_agents: int = 5, range_m: float | None = None,
+                 delays: Sequence[int] = (0,), egos: str = "all", stride: int = 1, seed: int = 0,
+                 with_points: bool = True) -> None:
+        self.store = FrameStore(Path(root))
+        self.split = split
+        self.items = self.store.keys(split, egos=egos, stride=stride)
+        if not self.items:
+            raise DatasetError(f"{self.store.root}: split {split!r} has no frames")
+        self.max_agents = max_agents
+        self.range_m = range_m
+        self.delays = tuple(delays)
+        self.seed = seed
+        self.epoch = 0
+        self.with_points = with_points
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def _delay(self, i: int) -> int:
+        if len(self.delays) == 1:
+            return self.delays[0]
+        rng = np.random.default_rng([self.seed, self.epoch, i])
+        return int(self.delays[int(rng.integers(len(self.delays)))])
+
+    def __getitem__(self, i: int) -> dict:
+        key = self.items[i]
+        run = self.store.runs[key.run]
+        rng_m = self.range_m if self.range_m is not None else run["range_m"]
+        cells = run["bev"]["cells"]
+        with self.store.frame(key.run, key.frame) as f:
+            cavs = [str(c) for c in f["cavs"]]
+            poses = f["poses"]
+            agents = select_agents(cavs, poses, key.ego, rng_m, self.max_agents)
+            masks = unpack_masks(f[f"gt_{key.ego}"], cells)
+            boxes, vis = f[f"boxes_{key.ego}"], f[f"boxvis_{key.ego}"]
+            seen = set(str(x) for x in f[f"seen_{key.ego}"])
+            own = np.array([str(x) in seen for x in f[f"boxids_{key.ego}"]], dtype=bool).reshape(-1)
+            ego_pose = _pose(poses, cavs, key.ego)
+            delay = self._delay(i) if key.frame > 0 else 0
+            src = {c: key.frame for c in agents}
+            clouds: dict[str, np.ndarray] = {}
+            agent_poses = {c: _pose(poses, cavs, c) for c in agents}
+            if self.with_points:
+                clouds[key.ego] = f[f"points_{key.ego}"]
+        if delay:
+            with self.store.frame(key.run, key.frame - delay) as g:
+                old = [str(c) for c in g["cavs"]]
+                for c in agents[1:]:
+                    if c in old:
+                        src[c] = key.frame - delay
+                        agent_poses[c] = _pose(g["poses"], old, c)
+                        if self.with_points:
+                            clouds[c] = g[f"points_{c}"]
+        if self.with_points:
+            missing = [c for c in agents if c not in clouds]
+            if missing:
+                with self.store.frame(key.run, key.frame) as f:
+                    for c in missing:
+                        clouds[c] = f[f"points_{c}"]
+        rel = np.array([relative_pose(ego_pose, agent_poses[c]) for c in agents], dtype=np.float32)
+        return {
+            "points": [torch.from_numpy(clouds[c].astype(np.float32)) for c in agents] if self.with_points else [],
+            "agents": agents,
+            "agent_frames": [src[c] for c in agents],
+            "rel_poses": torch.from_numpy(rel),
+            "valid": torch.ones(len(agents), dtype=torch.bool),
+            "vehicle": torch.from_numpy(masks["visible"]),
+            "dynamic": torch.from_numpy(masks["dynamic"]),
+            "visible_self": torch.from_numpy(masks["visible_self"]),
+            "road": torch.from_numpy(masks["road"]),
+            "lane": torch.from_numpy(masks["lane"]),
+            "boxes": torch.from_numpy(boxes[vis].copy()),
+            "boxes_hidden": torch.from_numpy(boxes[~vis].copy()),
+            "boxes_self": torch.from_numpy(boxes[own].copy()),
+            "boxes_self_hidden": torch.from_numpy(boxes[~own].copy()),
+            "key": key,
+        }
+
+
+def collate(samples: list[dict]) -> dict:
+    """Batch: "points" B lists of clouds, "rel_poses" [B, L, 3] and "valid" [B, L] padded to the largest
+    L, masks stacked [B, S, S], box lists kept as lists."""
+    b, lmax = len(samples), max(len(s["agents"]) for s in samples)
+    rel = torch.zeros(b, lmax, 3)
+    valid = torch.zeros(b, lmax, dtype=torch.bool)
+    for i, s in enumerate(samples):
+        n = len(s["agents"])
+        rel[i, :n] = s["rel_poses"]
+        valid[i, :n] = True
+    out: dict = {"points": [s["points"] for s in samples], "rel_poses": rel, "valid": valid}
+    for k in ("vehicle", "dynamic", "visible_self", "road", "lane"):
+        out[k] = torch.stack([s[k] for s in samples])
+    for k in ("boxes", "boxes_hidden", "boxes_self", "boxes_self_hidden", "key", "agents", "agent_frames"):
+        out[k] = [s[k] for s in samples]
+    return out
+
+
+def tensor_inputs(batch: dict) -> tuple[list[list[Tensor]], Tensor, Tensor]:
+    """(inputs, rel_poses, valid) of a batch, as CooperativePerception.forward takes them."""
+    return batch["points"], batch["rel_poses"], batch["valid"]

@@ -1,0 +1,40 @@
+"""Fuse, decode and score one frame with every method: the one prediction path.
+
+The ego process (agents/ego.py) and validation during training (v2vsim.training) both call
+`fuse_and_score`, so a metric printed by `v2vsim train` and one in a run's metrics.json come from
+the same code given the same FusionInputs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import nn
+
+from models.nms import rotated_iou_matrix
+from v2vsim.metrics import MethodScore
+from v2vsim.perception import FusionInputs, Prediction, predict
+
+
+def fuse_and_score(models: dict[str, nn.Module], inp: FusionInputs, cells: int, gt: dict[str, np.ndarray],
+                   boxes_gt: np.ndarray, scores: dict[str, MethodScore]) -> dict[str, Prediction]:
+    """Predict with every method that has input and add its scores; returns the predictions.
+
+    gt: "dynamic", "visible", "road", "lane" masks on the ego grid; boxes_gt [K, 5] scored boxes."""
+    preds = {}
+    for m, model in models.items():
+        pred = predict(m, model, inp, cells)
+        if pred is None:
+            continue
+        preds[m] = pred
+        s = scores[m]
+        s.add_segmentation(pred.probs, gt)
+        s.fusion_ms.append(pred.ms)
+        if s.boxes is not None and pred.boxes is not None:
+            s.boxes.add(pred.boxes[:, :5], pred.boxes[:, 5], boxes_gt)
+    return preds
+
+
+def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Rotated BEV IoU matrix of (x, y, l, w, yaw) boxes, the IoU that AP is scored with."""
+    return rotated_iou_matrix(torch.from_numpy(a).float(), torch.from_numpy(b).float()).numpy()

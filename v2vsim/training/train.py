@@ -1,0 +1,399 @@
+"""Training stages of the LiDAR zoo (CoBEVT authors' recipe: single-agent model first, then fusion
+on the frozen encoder so that every method fuses the very same wire message).
+
+    single   encoder + decoder/heads on one CAV's own sweep (this is `none`, and `late` per CAV);
+             targets: the vehicles the CAV's own sensors saw (others are ignored, not negatives)
+    cache    the frozen single-agent encoder's features of every CAV frame, float16 (the wire payload)
+    early    encoder + heads (from `single`) on clouds merged in the ego frame (OPV2V early fusion)
+    attfuse / fcooper / v2vnet / cobevt
+             fusion module + heads (heads from `single`) on the cached features of the ego and the
+             CAVs within range, neighbours randomly 0-1 frames old (a 27 Mbps link delivers one frame late)
+    disconet as above, plus DiscoNet's distillation: its fused map is pulled towards the early-fusion
+             teacher's features (KL over channels per cell; Li et al. 2021, Eq. 6)
+
+Losses (models.losses): focal loss on the dynamic class, cross-entropy on road/lane, focal +
+smooth-L1 on the anchor head. AdamW with a one-cycle schedule; seeded; progress with loss,
+samples/s and ETA; validation (the one prediction path, v2vsim.evaluate) after every epoch;
+checkpoints every few minutes and per epoch under --work; `--resume` continues mid-epoch.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import shlex
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from models import zoo
+from models.heads import AnchorTargetAssigner
+from models.losses import (
+    dense_focal_loss,
+    detection_loss,
+    dynamic_target,
+    segmentation_loss,
+    static_target,
+)
+from models.registry import build_cooperative
+from v2vsim.data.layout import DatasetError, runs_of
+from v2vsim.data.torch_dataset import CooperativeDataset, collate
+from v2vsim.evaluate import box_iou, fuse_and_score
+from v2vsim.metrics import ApAccumulator, MethodScore
+from v2vsim.perception import FusionInputs, late_outputs
+from v2vsim.training.cache import FeatureCache, build_feature_cache
+
+FUSION_STAGES = ("attfuse", "fcooper", "v2vnet", "cobevt", "disconet")
+STAGE_ORDER = ("single", "cache", "early", *FUSION_STAGES)
+CHECKPOINT_EVERY_S = 300.0
+CACHE_STRIDE = 2
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """What one stage trains and with which defaults (every field can be overridden by a flag)."""
+
+    name: str
+    methods: tuple[str, ...]  # zoo methods this stage's checkpoint serves
+    inputs: str  # "points" (encoder runs) | "cache" (frozen encoder features)
+    target: str  # "self" (own sensors' vehicles) | "coop" (vehicles any CAV saw)
+    epochs: int
+    samples_per_epoch: int
+    batch: int
+    lr: float
+    max_agents: int
+    delays: tuple[int, ...]
+    stride: int = 1  # use every stride-th frame (cache stages: the frames the feature cache holds)
+    val_samples: int = 120
+    distill_weight: float = 0.0
+
+
+SPECS: dict[str, StageSpec] = {
+    "single": StageSpec("single", ("none", "late"), "points", "self", 3, 2000, 4, 2e-3, 1, (0,)),
+    "early": StageSpec("early", ("early",), "points", "coop", 2, 600, 2, 1e-3, 5, (0, 1, 2)),
+    # Neighbours 0 or 2 frames old (0 / 200 ms; a 27 Mbps link delivers features 100 ms late):
+    # the cache holds every 2nd frame, which halves its cost (consecutive frames are near duplicates).
+    **{m: StageSpec(m, (m,), "cache", "coop", 2, 1200, 4, 2e-3, 5, (0, 2), stride=CACHE_STRIDE)
+       for m in FUSION_STAGES},
+}
+SPECS["disconet"] = dataclasses.replace(SPECS["disconet"], samples_per_epoch=600, distill_weight=1e3)
+
+
+@dataclass(frozen=True)
+class TrainArgs:
+    data: Path
+    stage: str
+    out: Path  # zoo root (manifest.json + <encoder>_<preset>/)
+    work: Path  # checkpoints, feature cache
+    encoder: str = "pointpillars"
+    preset: str = "tiny"
+    device: str = "cpu"
+    threads: int = 2
+    seed: int = 0
+    resume: bool = False
+    overrides: tuple[tuple[str, object], ...] = ()  # StageSpec fields from flags
+    command: str = ""
+
+
+# ---- losses --------------------------------------------------------------------------------------
+
+
+def perception_loss(out: dict[str, Tensor], batch: dict, target: str, assigner: AnchorTargetAssigner | None
+                    ) -> dict[str, Tensor]:
+    """Focal (dynamic) + CE (static) + anchor detection loss; `target` "self" or "coop"."""
+    dev = out["dynamic"].device
+    vehicle = (batch["visible_self"] if target == "self" else batch["vehicle"]).to(dev)
+    ignore = batch["dynamic"].to(dev) & ~vehicle
+    losses = {
+        "dyn": dense_focal_loss(out["dynamic"], dynamic_target(vehicle, ignore)),
+        "static": segmentation_loss(out["static"], static_target(batch["road"].to(dev), batch["lane"].to(dev))),
+    }
+    if assigner is not None and "det_cls" in out:
+        pos_key, hid_key = ("boxes_self", "boxes_self_hidden") if target == "self" else ("boxes", "boxes_hidden")
+        labels, regs = [], []
+        for pos, hid in zip(batch[pos_key], batch[hid_key], strict=True):
+            t = assigner(pos.to(dev))
+            h = assigner(hid.to(dev)).labels
+            lab = t.labels.clone()
+            lab[(h != 0) & (lab != 1)] = -1  # anchors on vehicles nobody saw: neither positive nor negative
+            labels.append(lab)
+            regs.append(t.reg)
+        losses["det"] = detection_loss(out["det_cls"], out["det_reg"], torch.stack(labels), torch.stack(regs))["total"]
+    losses["total"] = sum(losses.values())
+    return losses
+
+
+def distill_loss(student: Tensor, teacher: Tensor) -> Tensor:
+    """Mean per-cell KL(teacher || student) of the channel distributions, [B, C, F, F] each."""
+    kl = F.kl_div(F.log_softmax(student, dim=1), F.log_softmax(teacher, dim=1), log_target=True, reduction="none")
+    return kl.sum(dim=1).mean()
+
+
+# ---- models per stage ----------------------------------------------------------------------------
+
+
+def _prefixed(state: dict, prefix: str) -> dict:
+    return {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}
+
+
+def stage_file(args: TrainArgs, stage: str) -> Path:
+    return args.work / stage / "final.pt"
+
+
+def load_stage_state(args: TrainArgs, stage: str) -> dict:
+    p = stage_file(args, stage)
+    if not p.is_file():
+        raise DatasetError(f"{p}: stage {stage!r} has not finished; run `v2vsim train --stage {stage}` first")
+    return torch.load(p, map_location="cpu", weights_only=True)["state_dict"]
+
+
+def build_stage_model(args: TrainArgs, spec: StageSpec) -> nn.Module:
+    method = "none" if spec.name == "single" else spec.name
+    torch.manual_seed(args.seed)
+    model = build_cooperative(args.encoder, method, args.preset)
+    if spec.name != "single":
+        single = load_stage_state(args, "single")
+        model.encoder.load_state_dict(_prefixed(single, "encoder."))
+        model.heads.load_state_dict(_prefixed(single, "heads."))
+    return model
+
+
+def trainable(model: nn.Module, spec: StageSpec) -> list[nn.Parameter]:
+    if spec.inputs == "cache" or spec.name == "disconet":
+        for p in model.encoder.parameters():
+            p.requires_grad_(False)
+        return [*model.fusion.parameters(), *model.heads.parameters()]
+    return list(model.parameters())
+
+
+def state_to_save(model: nn.Module, spec: StageSpec) -> dict:
+    parts = {"fusion": model.fusion, "heads": model.heads}
+    if spec.name in ("single", "early"):
+        parts["encoder"] = model.encoder
+    return {f"{p}.{k}": v for p, m in parts.items() for k, v in m.state_dict().items()}
+
+
+# ---- the loop ------------------------------------------------------------------------------------
+
+
+def _features(cache: FeatureCache, batch: dict, channels: int, cells: int) -> Tensor:
+    """[B, L, C, F, F] float32 from the cache (each agent at the frame its message was captured)."""
+    b, lmax = batch["valid"].shape
+    out = torch.zeros(b, lmax, channels, cells, cells)
+    for i, (key, agents, frames) in enumerate(zip(batch["key"], batch["agents"], batch["agent_frames"], strict=True)):
+        for j, (c, k) in enumerate(zip(agents, frames, strict=True)):
+            out[i, j] = torch.from_numpy(cache.get(key.run, k, c).astype(np.float32))
+    return out
+
+
+def forward(model: nn.Module, spec: StageSpec, batch: dict, cache: FeatureCache | None, dev: torch.device
+            ) -> dict[str, Tensor]:
+    rel, valid = batch["rel_poses"].to(dev), batch["valid"].to(dev)
+    if spec.inputs == "cache" or spec.name == "disconet":
+        enc = model.encoder
+        feats = _features(cache, batch, enc.out_channels, enc.out_cells).to(dev)
+        fused = model.fuse(feats, rel, valid)
+        return {"fused": fused, **model.heads(fused)}
+    points = [[p.to(dev) for p in ps] for ps in batch["points"]]
+    return model(points, rel, valid)
+
+
+class Progress:
+    def __init__(self, stage: str, total: int, done: int, log) -> None:
+        self.stage, self.total, self.start_done, self.log = stage, total, done, log
+        self.t0 = time.monotonic()
+        self.last = 0.0
+
+    def show(self, done: int, samples: int, epoch: int, epochs: int, losses: dict[str, float], force: bool = False
+             ) -> None:
+        now = time.monotonic()
+        if not force and now - self.last < 10.0:
+            return
+        self.last = now
+        rate = samples / max(now - self.t0, 1e-9)
+        left = (self.total - done) * (samples / max(done - self.start_done, 1)) / max(rate, 1e-9)
+        parts = " ".join(f"{k} {v:.4g}" for k, v in losses.items())
+        print(f"[{self.stage}] epoch {epoch + 1}/{epochs} step {done}/{self.total}  loss {parts}  "
+              f"{rate:.1f} samples/s  ETA {left / 60:.1f} min", file=self.log, flush=True)
+
+
+def validate(args: TrainArgs, spec: StageSpec, model: nn.Module, single: nn.Module, ds: CooperativeDataset,
+             cache: FeatureCache | None, n: int) -> dict[str, dict]:
+    """Metrics of the stage's methods on `n` validation samples, through v2vsim.evaluate (as a run)."""
+    model.eval()
+    single.eval()
+    models = {m: model if m != "late" else single for m in spec.methods}
+    if spec.name == "single":
+        models = {"none": model, "late": model}
+    scores = {m: MethodScore(boxes=ApAccumulator()) for m in models}
+    idx = np.linspace(0, len(ds) - 1, min(n, len(ds))).round().astype(int)
+    with torch.no_grad():
+        for i in idx:
+            s = ds[int(i)]
+            inp = FusionInputs(senders=list(s["agents"]), rel_poses=s["rel_poses"].numpy())
+            for j, (c, k) in enumerate(zip(s["agents"], s["agent_frames"], strict=True)):
+                if cache is not None:
+                    payload = cache.get(s["key"].run, k, c)  # float16, as on the wire
+                else:
+                    payload = single.encoder([s["points"][j]])[0].numpy().astype(np.float16)
+                feats = payload.astype(np.float32)
+                inp.features[c] = feats
+                inp.points[c] = s["points"][j].numpy() if s["points"] else np.zeros((0, 4), np.float32)
+                if "late" in models:
+                    inp.outputs[c] = late_outputs(single, feats)
+            gt = {"dynamic": s["dynamic"].numpy(), "visible": s["vehicle"].numpy(), "road": s["road"].numpy(),
+                  "lane": s["lane"].numpy()}
+            fuse_and_score(models, inp, gt["road"].shape[0], gt, s["boxes"].numpy(), scores)
+    return {m: sc.to_json(box_iou) for m, sc in scores.items()}
+
+
+def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
+    """Train (or resume) one stage and export its checkpoint into the zoo; returns the validation metrics."""
+    torch.set_num_threads(args.threads)
+    dev = torch.device(args.device)
+    if args.stage == "cache":
+        single = build_stage_model(args, SPECS["early"])  # any model with the single-agent encoder
+        store = CooperativeDataset(args.data, "train").store
+        build_feature_cache(single.encoder, store, ("train", "val"), args.work / "cache", stride=CACHE_STRIDE,
+                            log=log)
+        return {}
+    spec = dataclasses.replace(SPECS[args.stage], **dict(args.overrides))
+    cache = FeatureCache(args.work / "cache") if spec.inputs == "cache" or spec.name == "disconet" else None
+    train = CooperativeDataset(args.data, "train", max_agents=spec.max_agents, delays=spec.delays, seed=args.seed,
+                               with_points=spec.inputs == "points" or spec.distill_weight > 0, stride=spec.stride)
+    val = CooperativeDataset(args.data, "val", max_agents=spec.max_agents if spec.name != "single" else 5,
+                             egos="first", with_points=cache is None or spec.name == "disconet",
+                             stride=CACHE_STRIDE)
+    model = build_stage_model(args, spec).to(dev)
+    single = model if spec.name == "single" else build_stage_model(args, SPECS["early"])  # single-agent weights
+    teacher = None
+    if spec.distill_weight > 0:
+        teacher = build_cooperative(args.encoder, "early", args.preset)
+        st = load_stage_state(args, "early")
+        teacher.encoder.load_state_dict(_prefixed(st, "encoder."))
+        teacher.heads.load_state_dict(_prefixed(st, "heads."))
+        teacher = teacher.to(dev).eval()
+    params = trainable(model, spec)
+    opt = torch.optim.AdamW(params, lr=spec.lr, weight_decay=1e-2)
+    steps_per_epoch = max(1, spec.samples_per_epoch // spec.batch)
+    total = steps_per_epoch * spec.epochs
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=spec.lr, total_steps=total, pct_start=0.1)
+    assigner = AnchorTargetAssigner(model.anchors) if model.heads.detection is not None else None
+    work = args.work / spec.name
+    work.mkdir(parents=True, exist_ok=True)
+    last = work / "last.pt"
+    epoch, step, wall, history = 0, 0, 0.0, []
+    if args.resume and last.is_file():
+        ck = torch.load(last, map_location="cpu", weights_only=False)
+        model.load_state_dict(ck["model"])
+        opt.load_state_dict(ck["opt"])
+        sched.load_state_dict(ck["sched"])
+        epoch, step, wall, history = ck["epoch"], ck["step"], ck["wall_s"], ck["history"]
+        print(f"[{spec.name}] resuming at epoch {epoch + 1}, step {step}", file=log)
+    elif last.is_file() and not args.resume:
+        print(f"[{spec.name}] starting over ({last} exists; --resume continues it)", file=log)
+
+    def save(ep: int, st: int) -> None:
+        tmp = work / "last.tmp"
+        torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
+                    "epoch": ep, "step": st, "wall_s": wall + time.monotonic() - t_seg, "history": history,
+                    "spec": dataclasses.asdict(spec)}, tmp)
+        tmp.replace(last)
+
+    t_seg = time.monotonic()
+    last_save = t_seg
+    prog = Progress(spec.name, total, epoch * steps_per_epoch + step, log)
+    samples = 0
+    while epoch < spec.epochs:
+        model.train()
+        if spec.inputs == "cache" or spec.name == "disconet":
+            model.encoder.eval()
+        train.epoch = epoch
+        perm = np.random.default_rng([args.seed, epoch]).permutation(len(train))
+        perm = np.resize(perm, steps_per_epoch * spec.batch)
+        running: dict[str, float] = {}
+        for s in range(step, steps_per_epoch):
+            batch = collate([train[int(j)] for j in perm[s * spec.batch:(s + 1) * spec.batch]])
+            out = forward(model, spec, batch, cache, dev)
+            losses = perception_loss(out, batch, spec.target, assigner)
+            if teacher is not None:
+                with torch.no_grad():
+                    t_out = teacher([[p.to(dev) for p in ps] for ps in batch["points"]],
+                                    batch["rel_poses"].to(dev), batch["valid"].to(dev))
+                losses["kd"] = spec.distill_weight * distill_loss(out["fused"], t_out["fused"])
+                losses["total"] = losses["total"] + losses["kd"]
+            opt.zero_grad(set_to_none=True)
+            losses["total"].backward()
+            torch.nn.utils.clip_grad_norm_(params, 10.0)
+            opt.step()
+            sched.step()
+            samples += spec.batch
+            for k, v in losses.items():
+                running[k] = 0.9 * running.get(k, float(v)) + 0.1 * float(v)
+            prog.show(epoch * steps_per_epoch + s + 1, samples, epoch, spec.epochs, running)
+            if time.monotonic() - last_save > CHECKPOINT_EVERY_S:
+                save(epoch, s + 1)
+                last_save = time.monotonic()
+        metrics = validate(args, spec, model, single, val, cache, spec.val_samples)
+        history.append({"epoch": epoch + 1, "loss": running, "validation": metrics})
+        summary = ", ".join(f"{m}: IoU veh {v['iou_vehicle']} road {v['iou_road']} lane {v['iou_lane']} "
+                            f"AP50 {v['ap50']} AP70 {v['ap70']}" for m, v in metrics.items())
+        print(f"[{spec.name}] epoch {epoch + 1}/{spec.epochs} validation: {summary}", file=log, flush=True)
+        epoch, step = epoch + 1, 0
+        save(epoch, 0)
+        last_save = time.monotonic()
+    wall_total = wall + time.monotonic() - t_seg
+    final = state_to_save(model, spec)
+    final_path = stage_file(args, spec.name)
+    torch.save({"state_dict": final, "spec": dataclasses.asdict(spec)}, final_path)
+    export(args, spec, final, history, wall_total)
+    return history[-1]["validation"] if history else {}
+
+
+def export(args: TrainArgs, spec: StageSpec, state: dict, history: list, wall_s: float) -> Path:
+    """Write the stage's checkpoint into the zoo and its manifest entry."""
+    name = "single.pt" if spec.name == "single" else f"{spec.name}.pt"
+    path = args.out / zoo.zoo_name(args.encoder, args.preset) / name
+    config = {"spec": dataclasses.asdict(spec), "seed": args.seed, "encoder": args.encoder, "preset": args.preset}
+    zoo.save_checkpoint(path, state, encoder=args.encoder, preset=args.preset, stage=spec.name,
+                        methods=list(spec.methods), config=config)
+    manifest = CooperativeDataset(args.data, "train").store.manifest
+    runs = {s: [r["name"] for r in runs_of(manifest, s)] for s in ("train", "val", "eval")}
+    info = {
+        "stage": spec.name,
+        "command": args.command or f"v2vsim train --data {args.data} --stage {spec.name} --out {args.out}",
+        "data": {"root": str(args.data), "runs": runs,
+                 "train_frames": sum(r["frames"] for r in runs_of(manifest, "train"))},
+        "epochs": spec.epochs, "samples_per_epoch": spec.samples_per_epoch, "batch": spec.batch,
+        "wall_s": round(wall_s, 1), "device": args.device, "threads": args.threads,
+        "validation": history[-1]["validation"] if history else None,
+    }
+    zoo.register(path, encoder=args.encoder, preset=args.preset, methods=list(spec.methods), info=info,
+                 root=args.out)
+    return path
+
+
+def stages_for(name: str) -> list[str]:
+    if name == "all":
+        return list(STAGE_ORDER)
+    if name not in STAGE_ORDER:
+        raise ValueError(f"--stage {name!r}: allowed: all, {', '.join(STAGE_ORDER)}")
+    return [name]
+
+
+def main_train(args: TrainArgs, log=sys.stderr) -> int:
+    for st in stages_for(args.stage):
+        t0 = time.monotonic()
+        run_stage(dataclasses.replace(args, stage=st), log=log)
+        print(f"[{st}] done in {(time.monotonic() - t0) / 60:.1f} min", file=log, flush=True)
+    return 0
+
+
+def command_line(argv: list[str]) -> str:
+    return "v2vsim train " + " ".join(shlex.quote(a) for a in argv)
+
