@@ -351,18 +351,17 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
     final = state_to_save(model, spec)
     final_path = stage_file(args, spec.name)
     torch.save({"state_dict": final, "spec": dataclasses.asdict(spec)}, final_path)
-    export(args, spec, final, history, wall_total)
+    export(args, spec, final, history, wall_total, train.store.manifest)
     return history[-1]["validation"] if history else {}
 
 
-def export(args: TrainArgs, spec: StageSpec, state: dict, history: list, wall_s: float) -> Path:
+def export(args: TrainArgs, spec: StageSpec, state: dict, history: list, wall_s: float, manifest: dict) -> Path:
     """Write the stage's checkpoint into the zoo and its manifest entry."""
     name = "single.pt" if spec.name == "single" else f"{spec.name}.pt"
     path = args.out / zoo.zoo_name(args.encoder, args.preset) / name
     config = {"spec": dataclasses.asdict(spec), "seed": args.seed, "encoder": args.encoder, "preset": args.preset}
     zoo.save_checkpoint(path, state, encoder=args.encoder, preset=args.preset, stage=spec.name,
                         methods=list(spec.methods), config=config)
-    manifest = CooperativeDataset(args.data, "train").store.manifest
     runs = {s: [r["name"] for r in runs_of(manifest, s)] for s in ("train", "val", "eval")}
     info = {
         "stage": spec.name,
