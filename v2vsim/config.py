@@ -65,10 +65,25 @@ class TrafficConfig:
 
 
 @dataclass(frozen=True)
+class MeetConfig:
+    """What CAV placement aims for (see v2vsim/traffic/sumo.py): at least `neighbours` other CAVs
+    within comm.range_m of the first ego in at least `share` of the frames, counted from frame 0."""
+
+    neighbours: int = _f(2, ">= 0 (capped at cavs.count - 1)", _nonneg)
+    share: float = _f(0.9, "0..1", _prob)
+    trials: int = _f(24, "1..200 (candidate placements simulated ahead; 1 = the first candidate only)",
+                     lambda v: 1 <= v <= 200)
+
+
+@dataclass(frozen=True)
 class CavsConfig:
     count: int = _f(4, "1..16", lambda v: 1 <= v <= 16)
     ego: str | tuple[str, ...] = _f("first", "'first', 'all' or a list of CAV ids",
                                     lambda v: not isinstance(v, str) or v in ("first", "all"))
+    arrival_s: tuple[float, float] = _f((0.0, 4.0), "[lo, hi] with 0 <= lo <= hi <= 60 (seconds after frame 0 "
+                                        "at which the CAVs reach the junction at free-flow speed)",
+                                        lambda v: 0 <= v[0] <= v[1] <= 60)
+    meet: MeetConfig = field(default_factory=MeetConfig)
 
 
 @dataclass(frozen=True)

@@ -233,10 +233,11 @@ def test_realtime_clock_runs_on_the_wall_clock(tmp_path: Path) -> None:
 
 
 def test_a_cav_that_leaves_ends_its_agent_and_the_run_goes_on(tmp_path: Path) -> None:
-    """In scenarios/intersection.yaml (seed 0) cav0 leaves the network at frame 307 and cav1 at 372."""
+    """In scenarios/intersection.yaml (seed 0, the canonical CAV placement: cavs.meet.trials=1) cav0
+    leaves the network at frame 307 and cav1 at 372."""
     out = tmp_path / "run"
     run = Run("--frames", "330", "--out", str(out), "--set", "cavs.count=2", "--set", "cavs.ego=[cav1]",
-              "--methods", "none", "--set", "output.rerun=false")
+              "--set", "cavs.meet.trials=1", "--methods", "none", "--set", "output.rerun=false")
     assert run.finish() == 0, "".join(run.log)
     m = _metrics(out)
     assert m["ego"] == "cav1" and m["frames"] == 330 and m["status"] == "complete"

@@ -26,6 +26,7 @@ def test_defaults_and_immutability(tmp_path: Path) -> None:
     assert sc.cavs.count == 4 and sc.bev.cells == 256 and sc.comm.bandwidth_mbps == 27
     assert sc.sensors.lidar.vertical_fov_deg == (-25.0, 5.0)
     assert sc.perception.methods[-1] == "cobevt"
+    assert sc.cavs.arrival_s == (0.0, 4.0) and sc.cavs.meet.neighbours == 2 and sc.cavs.meet.share == 0.9
     with pytest.raises(AttributeError):
         sc.seed = 3  # type: ignore[misc]
 
@@ -42,6 +43,13 @@ def test_override_parses_yaml_scalars(tmp_path: Path) -> None:
     ("text", "overrides", "expect"),
     [
         ("cavs: {count: 0}\n", [], ["cavs.count", "1..16"]),
+        ("cavs: {arrival_s: [5, 1]}\n", [], ["cavs.arrival_s", "lo <= hi"]),
+        ("cavs: {arrival_s: [-1, 1]}\n", [], ["cavs.arrival_s", "0 <= lo"]),
+        ("cavs: {arrival_s: 3}\n", [], ["cavs.arrival_s", "a list of a number (2 items)"]),
+        ("cavs: {meet: {share: 1.5}}\n", [], ["cavs.meet.share", "0..1"]),
+        ("cavs: {meet: {trials: 0}}\n", [], ["cavs.meet.trials", "1..200"]),
+        ("cavs: {meet: {neigbours: 2}}\n", [], ["cavs.meet.neigbours", "did you mean 'neighbours'"]),
+        ("seed: 1\n", ["cavs.arrival_s=[1]"], ["cavs.arrival_s", "got 1 items"]),
         ("comm: {latency_ms: {mean: -5}}\n", [], ["comm.latency_ms.mean", ">= 0"]),
         ("comm: {drop: {p: 1.5}}\n", [], ["comm.drop.p", "0..1"]),
         ("comm: {dorp: {p: 0.1}}\n", [], ["comm.dorp", "did you mean 'drop'"]),

@@ -31,6 +31,22 @@ the same route: it drives like background traffic and yields under the env's rul
 meta-actions the env still sends are ignored by IDM vehicles). highway-env's own rule is not
 collision-free: over seeds 0-4 and 200 frames, 4 of 20 CAVs still crashed (vs. most before);
 crashed vehicles stay in the WorldState, as in the env.
+
+CAV placement: `cavs.arrival_s` and `cavs.meet` (the SUMO backend's "CAVs meet from frame 0"
+placement) are not applied here, because this map cannot give both at once. Its arms are 100 m
+in + 100 m out at 10 m/s, and a CAV is dropped 20 m before the end of its exit lane, so even a
+straight route from the far end of an arm (111 m out) is ~200 m, ~20 s: the ego lasts the
+200 frames of a 20 s run only if it starts within a few metres of that far end or is held at
+the junction for as long as it started closer. Starting there, it is more than 70 m from every
+lane of the other arms until it has driven ~40 m, and a CAV of an adjacent (opposite) arm is in
+range only once both are within ~50 m (~35 m) of the centre; so CAVs from other arms timed to
+reach the junction with the ego and to leave by its exit are in range for ~14 of the 20 s at
+best (< 80 %), and CAVs of its own arm are ahead of it and leave the map before it. Only a
+single-arm platoon could do better, which gives up the different viewpoints cooperative
+perception is about. So the env's own spawn is kept (arm i % 4,
+35-45 m before the junction). Measured with benchmarks/placement.py over seeds 0-19: >= 2 other
+CAVs within 70 m of cav0 in 62-100 % of the frames (min 0.62), and cav0 leaves before frame 200
+on 7 of the 20 seeds (as early as frame 175).
 """
 
 from __future__ import annotations

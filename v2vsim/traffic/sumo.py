@@ -17,13 +17,32 @@ What the backend does, net-agnostically:
 3. CAVs "cav0".."cav{N-1}": cav0 approaches from a minor-road arm if there is one (it yields,
    so it lingers at the junction), else from the arm pointing most to the west (it drives east
    into the junction); cav1 from the arm most opposite to it, then the side arms, then further
-   rounds on other lanes / further back. Movements prefer turns (`_CAV_MOVES`). Each CAV is
-   inserted one step before frame 0 at a free spot `v * t_i` before its stop line, t_i spread
-   evenly over `_CAV_ARRIVAL_S` = 3..12 s, so they reach the junction around frames 30..120 at
-   10 Hz and stay within comm range of cav0 for most of a 20 s run. A spot is accepted only if
-   SUMO's safe-gap rule will let the CAV in (a refused one is re-placed more cautiously, which
-   at worst delays frame 0 by a step or two). Exit edges are the long arms, so a CAV stays in
-   the simulation for a while after crossing.
+   rounds on other lanes / further back. Each CAV is inserted one step before frame 0 at a free
+   spot `v * t_i` before its stop line, where t_i (its free-flow arrival time) lies in
+   `cavs.arrival_s` (default 0..4 s): the CAVs start near the junction and meet from frame 0.
+   A spot is accepted only if SUMO's safe-gap rule will let the CAV in (a refused one is
+   re-placed more cautiously, which at worst delays frame 0 by a step or two).
+4. Placement by look-ahead (`cavs.meet`). Where the CAVs end up depends on what no formula
+   knows in general: the signal phase at frame 0 (a CAV at red waits for tens of seconds while
+   one with green leaves at ~14 m/s), yielding, queues of background traffic, and CAVs that
+   cross in opposite directions separating at ~28 m/s. So `reset()` simulates candidate
+   placements ahead over the scenario's duration (same seed, same warm-up: libsumo runs a
+   candidate in ~0.03-0.06 s) and keeps the one where the first ego (cav0 by default) has at
+   least `cavs.meet.neighbours` (2) other CAVs within `comm.range_m` (centre distance) in at
+   least `cavs.meet.share` (0.9) of the frames from frame 0, and is still in the simulation at
+   the last frame; among those, the one with the most distinct arms (CAVs that see the junction
+   from different sides are what cooperation needs); if none qualifies, the one with the most
+   such frames. Candidate 0 is the canonical plan above (movements from `_CAV_MOVES`, arrival
+   times spread evenly over the window in CAV order); the others (`cavs.meet.trials` in all) are
+   drawn from a generator seeded with the scenario seed: arrival times in the window, routes
+   among the arm's movements (half of the time the one that leaves by cav0's exit, so the two
+   drive off together), and in the second half of the trials a CAV may share an earlier CAV's
+   arm (another lane, or behind it). The search stops at the first candidate that qualifies
+   from min(N, arms) arms. Only the topology analysis above is used, so it works on any net;
+   the whole procedure is deterministic per seed, and the choice is cached per scenario in the
+   process (`placement` on the backend says which candidate won and how it scored). With
+   `cavs.meet.trials: 1` the canonical plan is used unchecked.
+   Exit edges are the long arms, so a CAV stays in the simulation for a while after crossing.
 
 SUMO runs with `--lanechange.duration 2` (lane changes move sideways over 2 s instead of
 jumping 3.5 m in one step), no teleports and collisions only noted, so a vehicle never vanishes
@@ -40,6 +59,7 @@ import contextlib
 import io
 import itertools
 import math
+import os
 from dataclasses import dataclass
 from types import ModuleType
 
@@ -68,14 +88,30 @@ _MOVEMENT_WEIGHT = {"straight": 2.0, "left": 1.0, "right": 1.0}
 # Movement wished for the i-th CAV (falls back to whatever its arm offers): turning CAVs stay
 # near the junction longer and cross the paths of the others.
 _CAV_MOVES = ("straight", "left", "left", "right", "right", "left")
-# CAVs reach their stop line between these times after frame 0 (s): frames 30..120 at 10 Hz.
-_CAV_ARRIVAL_S = (3.0, 12.0)
 _MIN_GAP = 2.5  # m, standstill gap of every vehicle type
 _CAV_DECEL = 4.5  # m/s^2, the CAV type's comfortable deceleration
 _FOLLOWER_DECEL = 4.0  # m/s^2, the smallest deceleration among the background types
 _ENTRY_CLEARANCE_M = 40.0  # CAVs are not inserted this close to the start of an edge
 _BG_CHUNK_S = 30.0  # background departures are generated this far ahead, lazily
 _MAX_DEPART_DELAY_S = 5.0  # a background vehicle that cannot enter for this long is dropped
+
+
+# Chosen placements per scenario (the look-ahead costs a few simulations; a reset of the same
+# scenario reuses its result). Keyed by the frozen Scenario plus the net file's mtime.
+_PLACEMENTS: dict[tuple, tuple[tuple[CavSpec, ...], Placement]] = {}
+
+
+_ONE_SIM = ("another SUMO simulation is running in this process (libsumo allows one); close() its "
+            "backend before starting a new one")
+
+
+def _cache_key(sc: Scenario) -> tuple | None:
+    try:
+        key = (sc, os.stat(sc.traffic.net).st_mtime_ns)
+        hash(key)
+    except (OSError, TypeError):
+        return None
+    return key
 
 
 def _libsumo() -> ModuleType:
@@ -134,6 +170,31 @@ class CavPlan:
     lane: int
     depart_pos: float  # front-bumper position on edges[0], m
     to_stop_line_m: float  # distance still to drive to the junction at insertion
+    arrival_s: float = 0.0  # the planned free-flow time to the stop line
+
+
+@dataclass(frozen=True)
+class CavSpec:
+    """A candidate placement of one CAV, before SUMO is asked: route, lane preference, timing."""
+
+    id: str
+    route: Route
+    slot: int  # rotates the route's usable lanes: CAVs on one arm take different lanes
+    arrival_s: float  # free-flow time from insertion to the stop line
+
+
+@dataclass(frozen=True)
+class Placement:
+    """The placement chosen by the look-ahead (see module doc) and how it scored."""
+
+    trial: int  # index of the chosen candidate (0 = the canonical one)
+    trials_run: int
+    share: float  # share of frames with >= `neighbours` other CAVs within comm range of the reference CAV
+    neighbours: int  # the count aimed at: min(cavs.meet.neighbours, cavs.count - 1)
+    ref_frames: int  # frames (of the look-ahead) the reference CAV was in the simulation
+    frames: int  # frames looked ahead (the scenario's duration)
+    arms: int  # distinct approach arms among the CAVs
+    histogram: tuple[float, ...]  # share of frames with 0, 1, 2, ... other CAVs in range
 
 
 @dataclass(frozen=True)
@@ -243,6 +304,7 @@ class SumoBackend(BackendBase):
         self._bg_horizon = 0.0
         self._bg_count = 0
         self.cav_plans: tuple[CavPlan, ...] = ()
+        self.placement: Placement | None = None
 
     # -- public API ----------------------------------------------------------------------------
 
@@ -251,12 +313,22 @@ class SumoBackend(BackendBase):
         return self._static
 
     def reset(self) -> WorldState:
-        """Start SUMO, run the warm-up with background traffic, insert the CAVs, return frame 0."""
+        """Start SUMO, run the warm-up with background traffic, insert the CAVs, return frame 0.
+
+        The CAV placement is chosen first by looking ahead (see module doc; cached per scenario).
+        """
         self.close()
+        if _libsumo().simulation.isLoaded():
+            raise RuntimeError(_ONE_SIM)
+        specs = self._choose_placement()
+        ls = self._launch(specs)
+        return self._state(ls)
+
+    def _launch(self, specs: tuple[CavSpec, ...]) -> ModuleType:
+        """Start SUMO, warm up, insert the CAVs of `specs` and take the step that makes frame 0."""
         ls = _libsumo()
         if ls.simulation.isLoaded():
-            raise RuntimeError("another SUMO simulation is running in this process (libsumo allows "
-                               "one); close() its backend before starting a new one")
+            raise RuntimeError(_ONE_SIM)
         sc = self.scenario
         ls.start(["sumo", "--net-file", sc.traffic.net,
                   "--seed", str(sc.seed), "--step-length", repr(self._dt), "--begin", "0",
@@ -277,7 +349,7 @@ class SumoBackend(BackendBase):
         warm_steps = max(0, round(sc.traffic.warmup_s * sc.rate_hz))
         for _ in range(max(0, warm_steps - 1)):
             self._advance(ls)
-        self.cav_plans = self._insert_cavs(ls)
+        self.cav_plans = self._insert_cavs(ls, specs)
         self._advance(ls)
         for margin in (2.0, 3.0, 4.0, 6.0):  # rare: SUMO refused a spot; re-plan it more cautiously
             missing = {c for c in self._cav_ids if c not in self._known}
@@ -285,13 +357,155 @@ class SumoBackend(BackendBase):
                 break
             for c in sorted(missing):
                 ls.vehicle.remove(c)
-            plans = self._insert_cavs(ls, only=missing, margin=margin)
+            plans = self._insert_cavs(ls, specs, only=missing, margin=margin)
             self.cav_plans = tuple(p if p.id in missing else q for p, q in zip(plans, self.cav_plans, strict=True))
             self._advance(ls)
         missing = {c for c in self._cav_ids if c not in self._known}
         if missing:
+            self.close()
             raise RuntimeError(f"SUMO could not insert {sorted(missing)} (no free space on their lanes)")
-        return self._state(ls)
+        return ls
+
+    # -- CAV placement: candidates and look-ahead ------------------------------------------------
+
+    def _meet_ref(self) -> str:
+        """The CAV whose neighbours placement counts: the first ego."""
+        ego = self.scenario.cavs.ego
+        if isinstance(ego, tuple) and ego[0] in self._cav_ids:
+            return ego[0]
+        return self._cav_ids[0]
+
+    def _arrival_times(self) -> list[float]:
+        lo, hi = self.scenario.cavs.arrival_s
+        n = len(self._cav_ids)
+        return [lo + (hi - lo) * (i / (n - 1) if n > 1 else 0.0) for i in range(n)]
+
+    def candidates(self) -> list[tuple[CavSpec, ...]]:
+        """The candidate placements, in the order the look-ahead tries them (deterministic per seed).
+
+        0: the canonical plan: CAV i on arm i (order_arms), its preferred movement (_CAV_MOVES),
+        arrival times spread evenly over cavs.arrival_s in CAV order. Then seeded variations: arrival
+        times drawn in the window, routes drawn among the arm's movements (half of the time the
+        route that leaves by cav0's exit, so the two drive off together); in the second half of the
+        trials a CAV may share an arm (another lane, or behind) with an earlier one.
+        """
+        sc = self.scenario
+        arms = order_arms(self.topology.arms)
+        na = len(arms)
+        lo, hi = sc.cavs.arrival_s
+        times = self._arrival_times()
+        out = [tuple(CavSpec(vid, self._cav_route(i, arms[i % na]), i // na, times[i])
+                     for i, vid in enumerate(self._cav_ids))]
+        trials = sc.cavs.meet.trials
+        for j in range(1, trials):
+            rng = np.random.default_rng([sc.seed, 0x5A, j])
+            group = j >= max(2, trials // 2)
+            specs: list[CavSpec] = []
+            used: dict[int, int] = {}
+            for i, vid in enumerate(self._cav_ids):
+                k = i % na
+                if group and i > 0 and rng.random() < 0.5:
+                    k = int(rng.integers(min(i, na)))  # an arm an earlier CAV took
+                arm = arms[k]
+                slot = used.get(k, 0)
+                used[k] = slot + 1
+                if i > 0 and specs and rng.random() < 0.5:
+                    same_exit = [r for r in arm.routes if r.exit == specs[0].route.exit]
+                    route = same_exit[0] if same_exit else arm.routes[int(rng.integers(len(arm.routes)))]
+                else:
+                    route = arm.routes[int(rng.integers(len(arm.routes)))]
+                t = float(rng.uniform(lo, hi))
+                specs.append(CavSpec(vid, route, slot, t))
+            out.append(tuple(specs))
+        return out
+
+    def _look_ahead(self, specs: tuple[CavSpec, ...], max_bad: int | None = None) -> tuple[list[int], int, int]:
+        """Run the scenario's duration with `specs`: per frame, the other CAVs within comm range of
+        the reference CAV (0 once it has left); the frames it was present; the distinct arms the
+        CAVs were inserted on. Stops early (fewer counts) once more than `max_bad` frames fell
+        short of the wanted neighbours."""
+        sc = self.scenario
+        want = min(sc.cavs.meet.neighbours, len(self._cav_ids) - 1)
+        ls = self._launch(specs)
+        arms = len({p.route.approach for p in self.cav_plans})
+        tc = ls.constants
+        ref = self._meet_ref()
+        r2 = sc.comm.range_m ** 2
+        counts: list[int] = []
+        present = bad = 0
+        try:
+            for k in range(sc.frames):
+                if k:
+                    self._advance(ls)
+                res = ls.vehicle.getAllSubscriptionResults()
+                n = 0
+                if ref in res:
+                    present += 1
+                    centres = {}
+                    for c in self._cav_ids:
+                        r = res.get(c)
+                        if r is not None:
+                            x, y = r[tc.VAR_POSITION]
+                            p = sumo_to_pose(float(x), float(y), float(r[tc.VAR_ANGLE]), float(r[tc.VAR_LENGTH]))
+                            centres[c] = (p.x, p.y)
+                    ex, ey = centres[ref]
+                    n = sum(1 for c, (x, y) in centres.items() if c != ref and (x - ex) ** 2 + (y - ey) ** 2 <= r2)
+                counts.append(n)
+                bad += ref not in res or n < want
+                if max_bad is not None and bad > max_bad:
+                    break
+        finally:
+            self.close()
+        return counts, present, arms
+
+    def _choose_placement(self) -> tuple[CavSpec, ...]:
+        """Simulate candidates ahead; keep the one that meets cavs.meet from the most arms (see module doc)."""
+        sc = self.scenario
+        key = _cache_key(sc)
+        hit = _PLACEMENTS.get(key) if key is not None else None
+        if hit is not None:
+            self.placement = hit[1]
+            return hit[0]
+        meet = sc.cavs.meet
+        if meet.trials == 1:  # the canonical plan, unchecked
+            self.placement = None
+            return self.candidates()[0]
+        frames = sc.frames
+        want = min(meet.neighbours, len(self._cav_ids) - 1)
+        max_bad = math.floor((1.0 - meet.share) * frames + 1e-9)
+        max_arms = min(len(self._cav_ids), len(self.topology.arms))
+        best: tuple[tuple, int, tuple[CavSpec, ...], list[int], int, int] | None = None
+        errors: list[RuntimeError] = []
+        run = 0
+        for j, specs in enumerate(self.candidates()):
+            run += 1
+            try:
+                counts, present, arms = self._look_ahead(specs, max_bad)
+            except RuntimeError as e:  # this candidate could not be inserted
+                errors.append(e)
+                continue
+            good = sum(1 for c in counts if c >= want) - (len(counts) - present)
+            ok = len(counts) == frames and present == frames and good >= frames - max_bad
+            score = (ok, arms if ok else 0, good)
+            if best is None or score > best[0]:
+                best = (score, j, specs, counts, present, arms)
+            if ok and arms >= max_arms:
+                break
+        if best is None:
+            raise errors[0]
+        _, j, specs, counts, present, arms = best
+        if len(counts) < frames:  # nothing met the aim: score the best one over the whole run
+            counts, present, arms = self._look_ahead(specs)
+        hist = np.bincount(np.asarray(counts, dtype=np.int64), minlength=len(self._cav_ids)) / len(counts)
+        placement = Placement(trial=j, trials_run=run, share=sum(1 for c in counts if c >= want) / len(counts),
+                              neighbours=want, ref_frames=present, frames=len(counts), arms=arms,
+                              histogram=tuple(round(float(h), 4) for h in hist))
+        self.placement = placement
+        if key is not None:
+            if len(_PLACEMENTS) >= 64:
+                _PLACEMENTS.pop(next(iter(_PLACEMENTS)))
+            _PLACEMENTS[key] = (specs, placement)
+        return specs
 
     def step(self) -> WorldState:
         """Advance SUMO by one frame (1/rate_hz)."""
@@ -404,16 +618,14 @@ class SumoBackend(BackendBase):
               if any(c.getTo() is exit_edge for c in ln.getOutgoing())]
         return ok or [0]
 
-    def _insert_cavs(self, ls: ModuleType, only: set[str] | None = None,
+    def _insert_cavs(self, ls: ModuleType, specs: tuple[CavSpec, ...], only: set[str] | None = None,
                      margin: float = 1.5) -> tuple[CavPlan, ...]:
         """Add the CAVs (depart now) at free spots before their stop lines; see module doc.
 
         SUMO refuses an insertion when the vehicle behind could not brake in time (Krauss safe
         gap), so a spot is accepted only with that gap (times `margin`, raised on retries).
         """
-        n = len(self._cav_ids)
         arms = order_arms(self.topology.arms)
-        lo, hi = _CAV_ARRIVAL_S
         cav_len = next(t[2] for t in _VTYPES if t[0] == "cav")
         occupied: dict[str, list[tuple[float, float, float]]] = {}  # lane -> [(rear, front, speed)]
 
@@ -448,13 +660,15 @@ class SumoBackend(BackendBase):
             return v
 
         plans = []
-        for i, vid in enumerate(self._cav_ids):
-            slot = i // len(arms)
-            t_arr = lo + (hi - lo) * (i / (n - 1) if n > 1 else 0.0)
-            # Preferred arm and lane first; if that lane is jammed, the same timing elsewhere.
-            options = []
-            for j in range(len(arms)):
-                route = self._cav_route(i, arms[(i + j) % len(arms)])
+        for i, spec in enumerate(specs):
+            vid, slot, t_arr = spec.id, spec.slot, spec.arrival_s
+            # The spec's route and lane first; if that lane is jammed, its other lanes, then the
+            # same timing on the other arms.
+            lanes = self._lanes_for(spec.route)
+            options = [(spec.route, lanes[(slot + m) % len(lanes)]) for m in range(len(lanes))]
+            k0 = next(j for j, a in enumerate(arms) if a.approach == spec.route.approach)
+            for j in range(1, len(arms)):
+                route = self._cav_route(i, arms[(k0 + j) % len(arms)])
                 lanes = self._lanes_for(route)
                 options += [(route, lanes[(slot + m) % len(lanes)]) for m in range(len(lanes))]
             chosen = None
@@ -489,7 +703,7 @@ class SumoBackend(BackendBase):
             route, start, lane_n, pos, v_ins, occ, to_stop = chosen
             occ.append((pos - cav_len, pos, v_ins))
             edges = route.edges[start:]
-            plans.append(CavPlan(vid, route, edges, lane_n, pos, to_stop))
+            plans.append(CavPlan(vid, route, edges, lane_n, pos, to_stop, t_arr))
             if only is not None and vid not in only:
                 continue
             rid = f"route_{vid}_{margin:g}"

@@ -14,6 +14,7 @@ from shapely.ops import unary_union
 
 from v2vsim.config import load_scenario
 from v2vsim.traffic import TrafficBackend, make_backend
+from v2vsim.traffic import sumo as sumo_mod
 from v2vsim.traffic.sumo import SumoBackend, _libsumo, sumo_to_pose
 
 SCENARIOS = Path(__file__).resolve().parents[3] / "scenarios"
@@ -86,6 +87,70 @@ def test_cavs_stay_in_comm_range_of_cav0_most_of_the_run(name: str) -> None:
         assert sum(near) >= 0.5 * len(states), cid
 
 
+def _neighbours(states, ego: str, range_m: float) -> list[int | None]:
+    """Per frame, other CAVs within range_m of the ego (centre distance); None once the ego is gone."""
+    out: list[int | None] = []
+    for s in states:
+        e = s.actor(ego)
+        out.append(None if e is None else sum(
+            1 for a in s.cavs if a.id != ego and math.hypot(a.pose.x - e.pose.x, a.pose.y - e.pose.y) <= range_m))
+    return out
+
+
+# Seeds picked where the canonical plan does not qualify on the signalised net (the look-ahead has
+# to find another placement) as well as ones where it does; see benchmarks/placement.py for 0-19.
+@pytest.mark.parametrize(("name", "seed"), [("intersection", 0), ("intersection", 3), ("intersection", 9),
+                                            ("t_junction", 1), ("t_junction", 12), ("t_junction", 18)])
+def test_cavs_meet_from_frame0(name: str, seed: int) -> None:
+    """>= 2 other CAVs within comm range of cav0 in >= 80 % of the frames counted from frame 0, and
+    cav0 is still there at the last frame (measured on the WorldStates, not the backend's own figure)."""
+    sc = _scenario(name, f"seed={seed}")
+    with SumoBackend(sc) as tb:
+        states = [tb.reset()] + [tb.step() for _ in range(sc.frames - 1)]
+        placement = tb.placement
+    counts = _neighbours(states, "cav0", sc.comm.range_m)
+    assert None not in counts, f"cav0 left at frame {counts.index(None)}"
+    share = sum(1 for c in counts if c >= 2) / len(counts)
+    assert share >= 0.8, share
+    # the look-ahead predicted exactly this run (same seed, same steps)
+    assert placement is not None and placement.share == pytest.approx(share) and placement.ref_frames == sc.frames
+    assert placement.arms >= 2  # not a single platoon
+
+
+def test_placement_search_is_deterministic() -> None:
+    sc = _scenario("intersection", "seed=3")
+    runs = []
+    for _ in range(2):
+        sumo_mod._PLACEMENTS.clear()  # search again from scratch, not from the cache
+        with SumoBackend(sc) as tb:
+            states = [tb.reset()] + [tb.step() for _ in range(30)]
+            runs.append((tb.placement, tb.cav_plans, _signature(states)))
+    assert runs[0] == runs[1]
+    assert runs[0][0].trial > 0  # seed 3: the canonical plan does not meet the aim, a later candidate does
+
+
+def test_arrival_window_and_single_trial() -> None:
+    """cavs.meet.trials=1 is the canonical plan, unchecked; the arrival window sets the spots."""
+    near = _scenario("t_junction", "cavs.meet.trials=1", "cavs.arrival_s=[0, 0]", "traffic.background_per_hour=0")
+    far = _scenario("t_junction", "cavs.meet.trials=1", "cavs.arrival_s=[8, 8]", "traffic.background_per_hour=0")
+    with SumoBackend(near) as tb:
+        tb.reset()
+        assert tb.placement is None
+        near_plans = tb.cav_plans
+    with SumoBackend(far) as tb:
+        tb.reset()
+        far_plans = tb.cav_plans
+    assert all(p.arrival_s == 0.0 for p in near_plans) and all(p.arrival_s == 8.0 for p in far_plans)
+    # empty roads: the first CAV of each arm is where the window says (v * t before the stop line)
+    firsts = {}
+    for p in far_plans:
+        firsts.setdefault(p.route.approach, p)
+    for p in firsts.values():
+        assert p.to_stop_line_m == pytest.approx(8.0 * min(13.89, 50 / 3.6) if p.route.approach != "S2T"
+                                                 else 8.0 * 11.11, abs=3.0)
+    assert max(p.to_stop_line_m for p in near_plans) < 30.0  # the second CAV of an arm queues behind
+
+
 def test_yaw_matches_motion_and_centre_is_behind_bumper() -> None:
     sc = _scenario()
     ls = _libsumo()
@@ -106,7 +171,8 @@ def test_yaw_matches_motion_and_centre_is_behind_bumper() -> None:
                 pytest.approx(front, abs=1e-6)
             prev = cur
     cav0 = prev.actor("cav0")
-    assert abs(math.sin(cav0.pose.yaw)) < 0.2 and math.cos(cav0.pose.yaw) > 0  # drives east on W2C
+    # drives east on W2C (it may be mid lane change: SUMO steers up to ~20 degrees over 2 s)
+    assert math.cos(cav0.pose.yaw) > 0.9
     assert cav0.pose.x < 0 and -7.0 < cav0.pose.y < 0.0  # right-hand side of the west arm
 
 
