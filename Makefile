@@ -2,7 +2,7 @@
 PYTHON ?= python3
 PIP = $(PYTHON) -m pip install --disable-pip-version-check -q
 
-.PHONY: install demo test lint bench
+.PHONY: install demo test lint bench zoo
 
 install:
 	$(PIP) torch==2.13.0
@@ -19,3 +19,7 @@ bench: install
 	v2vsim bench sensors
 	v2vsim bench models
 	v2vsim bench comm
+
+# Rebuild the LiDAR model zoo from scratch: dataset (data/lidar) + every training stage (README "Training").
+zoo: install
+	scripts/lidar_zoo.sh data/lidar runs/train

@@ -16,3 +16,17 @@ def _one_torch_thread() -> Iterator[None]:
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="session")
+def tiny_dataset(tmp_path_factory: pytest.TempPathFactory):
+    """A recorded dataset of the intersection: 4 training frames (seed 700), 2 validation frames (701)."""
+    import io
+
+    from v2vsim.data.record import record_dataset
+
+    root = tmp_path_factory.mktemp("dataset")
+    scenario = "scenarios/intersection.yaml"
+    record_dataset(scenario, [700], 4, root, split="train", log=io.StringIO())
+    record_dataset(scenario, [701], 2, root, split="val", log=io.StringIO())
+    return root

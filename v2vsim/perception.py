@@ -182,9 +182,15 @@ def body_frame_points(sf: SensorFrame, sc: Scenario) -> np.ndarray:
 @torch.no_grad()
 def encode(encoder: nn.Module, sf: SensorFrame, sc: Scenario) -> np.ndarray:
     """[C, F, F] float32 BEV features of one CAV in its own frame."""
-    inputs = encoder_inputs(sf, sc)
-    feats = encoder(inputs) if sc.perception.modality == "lidar" else encoder(*inputs)
-    return feats[0].float().numpy()
+    if sc.perception.modality == "lidar":
+        return encode_points(encoder, body_frame_points(sf, sc))
+    return encoder(*encoder_inputs(sf, sc))[0].float().numpy()
+
+
+@torch.no_grad()
+def encode_points(encoder: nn.Module, points: np.ndarray) -> np.ndarray:
+    """A LiDAR encoder on one body-frame cloud [P, 4] -> [C, F, F] float32 features."""
+    return encoder([torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32))])[0].float().numpy()
 
 
 @torch.no_grad()

@@ -1,7 +1,7 @@
 """PyTorch view of a recorded dataset: one sample = one frame seen by one CAV as the ego.
 
 A sample holds what `CooperativePerception.forward` takes (per-agent LiDAR clouds, relative poses,
-valid flags; ego first, then the other CAVs within `range_m` of the ego, nearest first) and the
+valid flags; ego first, then the other CAVs within `range_m` of the ego, in id order as in a run) and the
 targets on the ego's BEV grid. Frames are read lazily from their .npz files.
 
 `delays`: frames of V2V delay drawn per sample for the neighbours (0 = same frame). A neighbour
@@ -69,7 +69,7 @@ def _pose(poses: np.ndarray, cavs: list[str], c: str) -> Pose:
 
 
 def select_agents(cavs: list[str], poses: np.ndarray, ego: str, range_m: float, max_agents: int) -> list[str]:
-    """The ego, then the other CAVs within range_m of it (nearest first), at most max_agents in all."""
+    """The ego, then the other CAVs within range_m of it, at most max_agents in all."""
     e = _pose(poses, cavs, ego)
     others = []
     for c in cavs:
@@ -79,7 +79,8 @@ def select_agents(cavs: list[str], poses: np.ndarray, ego: str, range_m: float, 
         d = math.hypot(p.x - e.x, p.y - e.y)
         if d <= range_m:
             others.append((d, c))
-    return [ego] + [c for _, c in sorted(others)][: max_agents - 1]
+    # The nearest ones when there are more than max_agents, in id order: the order the ego fuses in a run.
+    return [ego] + sorted(c for _, c in sorted(others)[: max_agents - 1])
 
 
 class CooperativeDataset(Dataset):

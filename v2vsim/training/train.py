@@ -45,7 +45,7 @@ from v2vsim.data.layout import DatasetError, runs_of
 from v2vsim.data.torch_dataset import CooperativeDataset, collate
 from v2vsim.evaluate import box_iou, fuse_and_score
 from v2vsim.metrics import ApAccumulator, MethodScore
-from v2vsim.perception import FusionInputs, late_outputs
+from v2vsim.perception import FusionInputs, encode_points, late_outputs
 from v2vsim.training.cache import FeatureCache, build_feature_cache
 
 FUSION_STAGES = ("attfuse", "fcooper", "v2vnet", "cobevt", "disconet")
@@ -222,33 +222,41 @@ class Progress:
               f"{rate:.1f} samples/s  ETA {left / 60:.1f} min", file=self.log, flush=True)
 
 
-def validate(args: TrainArgs, spec: StageSpec, model: nn.Module, single: nn.Module, ds: CooperativeDataset,
+def validate(spec: StageSpec, model: nn.Module, single: nn.Module, ds: CooperativeDataset,
              cache: FeatureCache | None, n: int) -> dict[str, dict]:
-    """Metrics of the stage's methods on `n` validation samples, through v2vsim.evaluate (as a run)."""
+    """Metrics of the stage's methods on `n` validation samples (spread over the split)."""
     model.eval()
     single.eval()
-    models = {m: model if m != "late" else single for m in spec.methods}
-    if spec.name == "single":
-        models = {"none": model, "late": model}
-    scores = {m: MethodScore(boxes=ApAccumulator()) for m in models}
+    models = {"none": model, "late": model} if spec.name == "single" else {spec.name: model}
     idx = np.linspace(0, len(ds) - 1, min(n, len(ds))).round().astype(int)
-    with torch.no_grad():
-        for i in idx:
-            s = ds[int(i)]
-            inp = FusionInputs(senders=list(s["agents"]), rel_poses=s["rel_poses"].numpy())
-            for j, (c, k) in enumerate(zip(s["agents"], s["agent_frames"], strict=True)):
-                if cache is not None:
-                    payload = cache.get(s["key"].run, k, c)  # float16, as on the wire
-                else:
-                    payload = single.encoder([s["points"][j]])[0].numpy().astype(np.float16)
-                feats = payload.astype(np.float32)
-                inp.features[c] = feats
-                inp.points[c] = s["points"][j].numpy() if s["points"] else np.zeros((0, 4), np.float32)
-                if "late" in models:
-                    inp.outputs[c] = late_outputs(single, feats)
-            gt = {"dynamic": s["dynamic"].numpy(), "visible": s["vehicle"].numpy(), "road": s["road"].numpy(),
-                  "lane": s["lane"].numpy()}
-            fuse_and_score(models, inp, gt["road"].shape[0], gt, s["boxes"].numpy(), scores)
+    return evaluate_samples(models, single, ds, [int(i) for i in idx], cache)
+
+
+@torch.no_grad()
+def evaluate_samples(models: dict[str, nn.Module], single: nn.Module, ds: CooperativeDataset, idx: list[int],
+                     cache: FeatureCache | None = None) -> dict[str, dict]:
+    """metrics.json-style scores of `models` on dataset samples, through the ego's own scoring
+    (v2vsim.evaluate.fuse_and_score) with inputs as they arrive off the wire: features float16 (from
+    `single`'s encoder, or the cache), late outputs computed by each CAV from its float32 features
+    and shipped as float16 maps + float32 boxes, points float32."""
+    scores = {m: MethodScore(boxes=ApAccumulator()) for m in models}
+    for i in idx:
+        s = ds[i]
+        inp = FusionInputs(senders=list(s["agents"]), rel_poses=s["rel_poses"].numpy())
+        for j, (c, k) in enumerate(zip(s["agents"], s["agent_frames"], strict=True)):
+            if cache is not None:
+                feats = cache.get(s["key"].run, k, c).astype(np.float32)
+            else:
+                feats = encode_points(single.encoder, s["points"][j].numpy())
+            inp.features[c] = feats.astype(np.float16).astype(np.float32)
+            if s["points"]:
+                inp.points[c] = s["points"][j].numpy()
+            if "late" in models:
+                maps, boxes = late_outputs(single, feats)
+                inp.outputs[c] = (maps.astype(np.float16).astype(np.float32), boxes)
+        gt = {"dynamic": s["dynamic"].numpy(), "visible": s["vehicle"].numpy(), "road": s["road"].numpy(),
+              "lane": s["lane"].numpy()}
+        fuse_and_score(models, inp, gt["road"].shape[0], gt, s["boxes"].numpy(), scores)
     return {m: sc.to_json(box_iou) for m, sc in scores.items()}
 
 
@@ -334,12 +342,12 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
             sched.step()
             samples += spec.batch
             for k, v in losses.items():
-                running[k] = 0.9 * running.get(k, float(v)) + 0.1 * float(v)
+                running[k] = 0.9 * running.get(k, float(v.detach())) + 0.1 * float(v.detach())
             prog.show(epoch * steps_per_epoch + s + 1, samples, epoch, spec.epochs, running)
             if time.monotonic() - last_save > CHECKPOINT_EVERY_S:
                 save(epoch, s + 1)
                 last_save = time.monotonic()
-        metrics = validate(args, spec, model, single, val, cache, spec.val_samples)
+        metrics = validate(spec, model, single, val, cache, spec.val_samples)
         history.append({"epoch": epoch + 1, "loss": running, "validation": metrics})
         summary = ", ".join(f"{m}: IoU veh {v['iou_vehicle']} road {v['iou_road']} lane {v['iou_lane']} "
                             f"AP50 {v['ap50']} AP70 {v['ap70']}" for m, v in metrics.items())

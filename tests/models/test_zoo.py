@@ -1,0 +1,64 @@
+"""The shipped zoo: every checkpoint matches its sha256 and loads; a corrupted or missing one is a
+clear error (file + rebuild command) and `v2vsim run` exits 2 before starting any process."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+from models import zoo
+from models.registry import METHODS
+from v2vsim.config import ConfigError, load_scenario
+from v2vsim.perception import build_agent_encoder, build_method_models, check_scenario
+
+
+def test_every_shipped_checkpoint_matches_its_sha256_and_loads() -> None:
+    entry = zoo.zoo_entry("pointpillars", "tiny")
+    assert entry is not None, "models/weights/manifest.json ships no pointpillars_tiny zoo"
+    assert set(entry["methods"]) == set(METHODS)
+    total = 0
+    for name, info in entry["files"].items():
+        path = zoo.WEIGHTS_DIR / "pointpillars_tiny" / name
+        assert zoo.sha256(path) == info["sha256"], name
+        assert zoo.load_checkpoint(path, entry), name
+        assert info["command"].startswith("v2vsim train") and info["validation"]
+        total += path.stat().st_size
+    assert total < 40e6
+    sc = load_scenario("scenarios/intersection.yaml")
+    models = build_method_models(sc, build_agent_encoder(sc), tuple(METHODS))
+    assert set(models) == set(METHODS)
+
+
+def _broken_zoo(tmp_path, how: str):
+    root = tmp_path / "zoo"
+    shutil.copytree(zoo.WEIGHTS_DIR, root)
+    target = root / "pointpillars_tiny" / "cobevt.pt"
+    if how == "missing":
+        target.unlink()
+    else:
+        data = bytearray(target.read_bytes())
+        data[len(data) // 2] ^= 0xFF
+        target.write_bytes(bytes(data))
+    return root, target
+
+
+@pytest.mark.parametrize("how", ["corrupted", "missing"])
+def test_broken_checkpoint_is_a_clear_error(tmp_path, how: str) -> None:
+    root, target = _broken_zoo(tmp_path, how)
+    sc = load_scenario("scenarios/intersection.yaml", [f"perception.weights={root}"])
+    with pytest.raises(ConfigError, match="v2vsim train") as e:
+        check_scenario(sc)
+    assert str(target) in str(e.value)
+    assert ("sha256" in str(e.value)) == (how == "corrupted")
+
+
+def test_run_with_a_corrupted_checkpoint_exits_2(tmp_path) -> None:
+    root, target = _broken_zoo(tmp_path, "corrupted")
+    r = subprocess.run([sys.executable, "-m", "v2vsim.cli", "run", "scenarios/intersection.yaml", "--frames", "2",
+                        "--out", str(tmp_path / "out"), "--set", f"perception.weights={root}"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, r.stderr
+    assert str(target) in r.stderr and "Traceback" not in r.stderr
