@@ -51,7 +51,7 @@ from v2vsim.training.cache import FeatureCache, build_feature_cache
 FUSION_STAGES = ("attfuse", "fcooper", "v2vnet", "cobevt", "disconet")
 STAGE_ORDER = ("single", "cache", "early", *FUSION_STAGES)
 CHECKPOINT_EVERY_S = 300.0
-CACHE_STRIDE = 4
+CACHE_STRIDE = 1
 
 
 @dataclass(frozen=True)
@@ -76,10 +76,8 @@ class StageSpec:
 SPECS: dict[str, StageSpec] = {
     "single": StageSpec("single", ("none", "late"), "points", "self", 3, 2000, 4, 2e-3, 1, (0,)),
     "early": StageSpec("early", ("early",), "points", "coop", 2, 600, 2, 1e-3, 5, (0, 1, 2)),
-    # The cache holds every CACHE_STRIDE-th frame (consecutive frames are near duplicates), so
-    # neighbours are fused as captured (no delay augmentation: a delay of `stride` frames is too long).
-    **{m: StageSpec(m, (m,), "cache", "coop", 2, 1200, 4, 2e-3, 5, (0,), stride=CACHE_STRIDE)
-       for m in FUSION_STAGES},
+    # Neighbours 0 or 1 frame old: a 27 Mbps link delivers feature messages one frame (100 ms) late.
+    **{m: StageSpec(m, (m,), "cache", "coop", 2, 1200, 4, 2e-3, 5, (0, 1)) for m in FUSION_STAGES},
 }
 SPECS["disconet"] = dataclasses.replace(SPECS["disconet"], samples_per_epoch=600, distill_weight=1e3)
 
@@ -276,7 +274,7 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
                                with_points=spec.inputs == "points" or spec.distill_weight > 0, stride=spec.stride)
     val = CooperativeDataset(args.data, "val", max_agents=spec.max_agents if spec.name != "single" else 5,
                              egos="first", with_points=cache is None or spec.name == "disconet",
-                             stride=CACHE_STRIDE)
+                             stride=2)
     model = build_stage_model(args, spec).to(dev)
     single = model if spec.name == "single" else build_stage_model(args, SPECS["early"])  # single-agent weights
     teacher = None
