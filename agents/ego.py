@@ -29,7 +29,7 @@ from v2vsim.comm.stats import CommStats
 from v2vsim.evaluate import box_iou, fuse_and_score
 from v2vsim.geometry import Pose, relative_pose
 from v2vsim.gt import bev_ground_truth, gt_boxes
-from v2vsim.metrics import ApAccumulator, MethodScore
+from v2vsim.metrics import ApAccumulator, MethodScore, cavs_in_range
 from v2vsim.perception import (
     FusionInputs,
     build_agent_encoder,
@@ -109,7 +109,7 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
 
     stats = CommStats()
     inboxes = {k: Inbox(sc.comm, sc.seed, me, k, stats if k == "features" else CommStats()) for k in kinds}
-    scores = {m: MethodScore(boxes=ApAccumulator() if lidar else None) for m in models}
+    scores = {m: MethodScore(boxes=ApAccumulator(sort=sc.evaluation.ap_sort) if lidar else None) for m in models}
     ego_poses: dict[int, Pose] = {}
     out_dir = Path(args.out) / ("" if me == args.egos[0] else f"ego_{me}")
     recorder = Recorder(out_dir / "recording.rrd", sc, list(models)) if sc.output.rerun else None
@@ -136,6 +136,7 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
                 status = f"ego {me} left the simulation at frame {k}"
                 break
             ego_poses[k] = ego_actor.pose
+            near = cavs_in_range(world, me, sc.comm.range_m)
             present = [a.id for a in world.cavs if a.id in args.cavs]
             if not realtime:
                 _wait_messages(box, bus, k, present, kinds, lost)
@@ -157,6 +158,7 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
             if recorder is not None:
                 recorder.log_frame(k, world, me, gt, preds, inp)
             frames_done += 1
+            summary.neighbours.append(near)
             if not realtime:
                 bus.put("ack", json.dumps({"ego": me, "frame": k}).encode())
             progress_line(f"ego {me}", k + 1, args.frames, t_start)

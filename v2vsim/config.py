@@ -180,6 +180,14 @@ class PerceptionConfig:
 
 
 @dataclass(frozen=True)
+class EvaluationConfig:
+    # How AP ranks detections: 'global' sorts every detection of the run by score (OpenCOOD's
+    # --global_sort_detections, the DESIGN.md default); 'per_frame' keeps frame order and sorts
+    # only within each frame (OpenCOOD's default, which most published AP tables use).
+    ap_sort: Literal["global", "per_frame"] = "global"
+
+
+@dataclass(frozen=True)
 class OutputConfig:
     dir: str = "runs/intersection"
     rerun: bool = True
@@ -198,6 +206,7 @@ class Scenario:
     comm: CommConfig = field(default_factory=CommConfig)
     transport: TransportConfig = field(default_factory=TransportConfig)
     perception: PerceptionConfig = field(default_factory=PerceptionConfig)
+    evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     source: str = field(default="<defaults>", metadata={"internal": True})  # the YAML file
     overrides: tuple[str, ...] = field(default=(), metadata={"internal": True})  # --set, for child processes

@@ -3,17 +3,40 @@
 IoU is dataset-level (summed intersections / summed unions over frames, threshold 0.5) with the
 per-frame mean beside it. Vehicle IoU is scored on visible vehicles as in the OPV2V camera track:
 cells of vehicles no CAV saw are left out of both prediction and truth. AP is BEV rotated-box AP
-at IoU 0.5 / 0.7 with detections sorted over the whole run (all-point interpolation).
+at IoU 0.5 / 0.7 (all-point interpolation) with detections sorted over the whole run, or per frame
+with `evaluation.ap_sort: per_frame` (see ApAccumulator).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from v2vsim.world import WorldState
+
 THRESHOLD = 0.5
+
+
+def cavs_in_range(world: WorldState, ego: str, range_m: float) -> int | None:
+    """Other CAVs whose pose (footprint centre) is within `range_m` of the ego's, in this world;
+    None if the ego is not in it. Geometry only: the channel's drop, latency and loss play no part."""
+    me = world.actor(ego)
+    if me is None:
+        return None
+    return sum(1 for a in world.cavs
+               if a.id != ego and math.hypot(a.pose.x - me.pose.x, a.pose.y - me.pose.y) <= range_m)
+
+
+def neighbour_shares(counts: Sequence[int], cavs: int) -> dict[str, float]:
+    """{"0": share, "1": share, ...}: share of the frames with that many other CAVs in range, one key
+    for every count from 0 to cavs - 1 (and beyond, if a frame saw more); empty without frames."""
+    if not counts:
+        return {}
+    hist = np.bincount(np.asarray(counts, dtype=np.int64), minlength=max(cavs, 1))
+    return {str(i): round(float(h) / len(counts), 4) for i, h in enumerate(hist)}
 
 
 @dataclass
@@ -44,11 +67,25 @@ class IouAccumulator:
         return float(np.mean(self.per_frame)) if self.per_frame else None
 
 
+AP_SORTS = ("global", "per_frame")
+
+
 @dataclass
 class ApAccumulator:
-    """Collects scored BEV boxes (x, y, l, w, yaw) and ground truth per frame; AP at any IoU threshold."""
+    """Collects scored BEV boxes (x, y, l, w, yaw) and ground truth per frame; AP at any IoU threshold.
+
+    sort="global": every detection of the run is ranked by score before the cumulative sums
+    (OpenCOOD's --global_sort_detections; DESIGN.md). sort="per_frame": detections are ranked by
+    score within each frame and the frames' true/false positives are concatenated in frame order,
+    without a global re-sort (OpenCOOD's default). Matching is the same in both: within a frame,
+    detections in descending score each take the best still-free ground truth box."""
 
     frames: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list)  # (det, scores, gt)
+    sort: str = "global"
+
+    def __post_init__(self) -> None:
+        if self.sort not in AP_SORTS:
+            raise ValueError(f"ApAccumulator sort {self.sort!r}; allowed: {', '.join(AP_SORTS)}")
 
     def add(self, det_boxes: np.ndarray, det_scores: np.ndarray, gt_boxes: np.ndarray) -> None:
         self.frames.append((np.asarray(det_boxes, dtype=np.float64).reshape(-1, 5),
@@ -78,9 +115,11 @@ class ApAccumulator:
                 hits.append(hit)
         if not scores:
             return 0.0
-        order = np.argsort(-np.asarray(scores), kind="stable")
-        tp = np.cumsum(np.asarray(hits)[order])
-        fp = np.cumsum(~np.asarray(hits)[order])
+        hits_arr = np.asarray(hits)
+        if self.sort == "global":
+            hits_arr = hits_arr[np.argsort(-np.asarray(scores), kind="stable")]
+        tp = np.cumsum(hits_arr)
+        fp = np.cumsum(~hits_arr)
         recall = tp / n_gt
         precision = tp / np.maximum(tp + fp, 1)
         # all-point interpolation: precision envelope integrated over recall

@@ -11,7 +11,7 @@ import numpy as np
 
 from v2vsim.comm.stats import CommStats
 from v2vsim.config import Scenario
-from v2vsim.metrics import MethodScore
+from v2vsim.metrics import MethodScore, neighbour_shares
 
 # CoBEVT paper figures (DESIGN.md "Reference figures"): OPV2V camera IoU vehicle/road/lane, LiDAR AP@0.7.
 PAPER_CAMERA = {"none": (37.7, 57.8, 43.7), "fcooper": (52.5, 60.4, 46.5), "attfuse": (51.9, 60.5, 46.2),
@@ -32,6 +32,7 @@ class RunSummary:
     sim_s: float = 0.0  # simulated seconds covered (realtime runs may skip frames)
     lost_agents: dict[str, int] = field(default_factory=dict)  # CAV id -> frame it was lost at
     skipped: list[str] = field(default_factory=list)  # methods the modality cannot run
+    neighbours: list[int] = field(default_factory=list)  # per fused frame: other CAVs within comm.range_m
 
 
 def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: CommStats,
@@ -55,6 +56,8 @@ def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: Comm
         "preset": sc.perception.preset,
         "weights": "untrained (seeded random init)" if summary.untrained else sc.perception.weights,
         "clock": sc.transport.clock,
+        "neighbours_in_range": neighbour_shares(summary.neighbours, sc.cavs.count),
+        "ap_sort": sc.evaluation.ap_sort,
     }
 
 
@@ -90,6 +93,11 @@ def report_md(doc: dict, summary: RunSummary) -> str:
                      f"{_fmt(r['iou_vehicle_all'], True)} | {_fmt(r['iou_road'], True)} | "
                      f"{_fmt(r['iou_lane'], True)} | {_fmt(r['ap50'])} | {_fmt(r['ap70'])} | "
                      f"{_fmt(r['fusion_ms'])} | {r['bytes_per_frame']} |")
+    sort = doc.get("ap_sort", "global")
+    lines += ["", "AP: BEV rotated boxes, all-point interpolation, detections sorted "
+              + ("over the whole run (`evaluation.ap_sort: global`, OpenCOOD's --global_sort_detections)."
+                 if sort == "global" else
+                 "within each frame, frames in order (`evaluation.ap_sort: per_frame`, OpenCOOD's default).")]
     c = doc["comm"]
     lat = c["latency_ms"]
     lines += ["", "## Communication (BEV feature messages, receiver side)", "",
@@ -102,6 +110,7 @@ def report_md(doc: dict, summary: RunSummary) -> str:
               f"{sc.comm.latency_ms.jitter:g} ms ({sc.comm.latency_ms.distribution}), drop {sc.comm.drop.model} "
               f"p={sc.comm.drop.p:g}, bandwidth {sc.comm.bandwidth_mbps} Mbps, max age {sc.comm.max_age_ms:g} ms, "
               f"pose noise {sc.comm.pose_noise.xy_std_m:g} m / {sc.comm.pose_noise.yaw_std_deg:g}°.",
+              *_neighbours_md(doc, summary),
               "", "## Reference (CoBEVT paper, OPV2V; real data, trained models)", "",
               "| method | camera IoU vehicle / road / lane | LiDAR AP@0.7 |", "|---|---|---|"]
     for m in ("none", "late", "early", "attfuse", "fcooper", "v2vnet", "disconet", "cobevt"):
@@ -111,6 +120,20 @@ def report_md(doc: dict, summary: RunSummary) -> str:
     lines += ["", "Plots: `iou_by_method.png`, `iou_per_frame.png`. Recording: `recording.rrd` "
               "(open with `rerun recording.rrd`).", ""]
     return "\n".join(lines)
+
+
+def _neighbours_md(doc: dict, summary: RunSummary) -> list[str]:
+    """The share of the fused frames with 0, 1, 2, ... other CAVs within comm range of the ego."""
+    shares = doc.get("neighbours_in_range") or {}
+    if not shares:
+        return []
+    at_least_two = sum(v for k, v in shares.items() if int(k) >= 2)
+    return ["", f"## CAVs within comm range of {summary.ego}", "",
+            f"Other CAVs within {summary.scenario.comm.range_m:g} m (centre distance, whatever the channel "
+            f"drops), share of the {doc['frames']} fused frames; at least two in {_fmt(at_least_two, True)} %.", "",
+            "| CAVs in range | " + " | ".join(shares) + " |",
+            "|---|" + "---|" * len(shares),
+            "| share of frames | " + " | ".join(f"{_fmt(v, True)} %" for v in shares.values()) + " |"]
 
 
 def plot(out: Path, doc: dict, scores: dict[str, MethodScore]) -> list[Path]:

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import psutil
+import pytest
 import zenoh
 
 from v2vsim.comm.codec import Message, encode
@@ -91,8 +92,13 @@ def test_run_writes_report_metrics_recording_and_plots(tmp_path: Path) -> None:
         assert r["iou_vehicle"] is None or 0.0 <= r["iou_vehicle"] <= 1.0
         assert r["fusion_ms"] > 0
     assert m["methods"]["none"]["bytes_per_frame"] == 0
+    # 300 m range: both other CAVs are within it in every frame (shares over 0..cavs-1 sum to 1)
+    assert m["neighbours_in_range"] == {"0": 0.0, "1": 0.0, "2": 1.0}
+    assert sum(m["neighbours_in_range"].values()) == pytest.approx(1.0)
+    assert m["ap_sort"] == "global"
     report = (out / "report.md").read_text()
     assert "| cobevt |" in report and "untrained" in report
+    assert "CAVs within comm range of cav0" in report and "sorted over the whole run" in report
     for png in ("iou_by_method.png", "iou_per_frame.png"):
         assert (out / png).read_bytes()[:4] == b"\x89PNG"
     from rerun.chunk import RrdReader
