@@ -115,7 +115,7 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
     recorder = Recorder(out_dir / "recording.rrd", sc, list(models)) if sc.output.rerun else None
     checkpoints = method_checkpoints(sc, tuple(models))
     summary = RunSummary(scenario=sc, ego=me, methods=list(models),
-                         untrained=all(v is None for v in checkpoints.values()),
+                         untrained=all(v is None for v in checkpoints.values()), checkpoints=checkpoints,
                          skipped=[m for m in methods if m not in models])
     bus.ready()
     t_start = time.monotonic()

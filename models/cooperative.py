@@ -7,21 +7,22 @@ Methods (models.registry.METHODS):
 - intermediate (attfuse, fcooper, v2vnet, disconet, cobevt): every valid agent is encoded in its own
   frame, warped with its relative SE(2) pose (models.warp), fused, decoded once;
 - "none": the ego alone; "early": every valid agent's points merged into the ego frame, encoded
-  once (LiDAR only); "late": every valid agent runs encoder + heads on its own, outputs merged in the
-  ego frame by ``predict`` (training a late model = training the single-agent model).
+  once (LiDAR only); "late": every valid agent runs encoder + heads on its own (training a late
+  model = training the single-agent model).
+
+Inference (decoding, late merging, box decoding) has one implementation, used by the ego of a run
+and by validation during training alike: ``v2vsim.perception.predict``.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
 
 import torch
 from torch import Tensor, nn
 
 from models.fusion.early import merge_points_to_ego
-from models.fusion.late import late_fuse_boxes, late_fuse_probabilities
-from models.heads import BevHeads, decode_detections, make_anchors, segmentation_probabilities
+from models.heads import BevHeads, make_anchors
 from models.warp import warp_to_ego
 
 # LiDAR inputs: B x L clouds [P, 4] in each agent's body frame.
@@ -111,33 +112,3 @@ class CooperativePerception(nn.Module):
             return out
         fused = self.fuse(feats, rel_poses, valid)
         return {"features": feats, "fused": fused, **self.heads(fused)}
-
-    # -- inference ---------------------------------------------------------------------------------
-
-    @torch.no_grad()
-    def predict(self, outputs: dict[str, Tensor], rel_poses: Tensor, valid: Tensor, **det_kwargs: Any) -> dict:
-        """Outputs of forward -> {"vehicle", "road", "lane": [B, S, S] probabilities in the ego grid,
-        "boxes": list of [K, 6] (x, y, l, w, yaw, score) per batch item (LiDAR)}.
-        Late fusion merges the per-agent maps (max) and boxes (rotated NMS) here."""
-        valid = valid.bool()
-        if self.method == "late":
-            b, l = valid.shape
-            probs = segmentation_probabilities(
-                outputs["agent_dynamic"].flatten(0, 1), outputs["agent_static"].flatten(0, 1)
-            )
-            res: dict[str, Any] = {}
-            for k, p in probs.items():
-                maps = p.unflatten(0, (b, l))[:, :, None]  # [B, L, 1, S, S]
-                res[k] = late_fuse_probabilities(maps, rel_poses, valid, self.bev_size_m)[:, 0]
-            if "agent_det_cls" in outputs:
-                res["boxes"] = []
-                for i in range(b):
-                    per = decode_detections(
-                        outputs["agent_det_cls"][i], outputs["agent_det_reg"][i], self.anchors, **det_kwargs
-                    )
-                    res["boxes"].append(late_fuse_boxes(per, rel_poses[i], valid[i]))
-            return res
-        res = dict(segmentation_probabilities(outputs["dynamic"], outputs["static"]))
-        if "det_cls" in outputs:
-            res["boxes"] = decode_detections(outputs["det_cls"], outputs["det_reg"], self.anchors, **det_kwargs)
-        return res

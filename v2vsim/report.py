@@ -33,6 +33,7 @@ class RunSummary:
     lost_agents: dict[str, int] = field(default_factory=dict)  # CAV id -> frame it was lost at
     skipped: list[str] = field(default_factory=list)  # methods the modality cannot run
     neighbours: list[int] = field(default_factory=list)  # per fused frame: other CAVs within comm.range_m
+    checkpoints: dict[str, str | None] = field(default_factory=dict)  # method -> zoo file (None: random init)
 
 
 def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: CommStats,
@@ -55,6 +56,7 @@ def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: Comm
         "encoder": sc.perception.encoder,
         "preset": sc.perception.preset,
         "weights": "untrained (seeded random init)" if summary.untrained else sc.perception.weights,
+        "checkpoints": {m: summary.checkpoints.get(m) for m in summary.methods},
         "clock": sc.transport.clock,
         "neighbours_in_range": neighbour_shares(summary.neighbours, sc.cavs.count),
         "ap_sort": sc.evaluation.ap_sort,
@@ -79,6 +81,10 @@ def report_md(doc: dict, summary: RunSummary) -> str:
         lines += ["", "**Weights are untrained** (no checkpoint for this encoder/preset; every process uses the same "
                   "seeded random initialisation). The scores below measure the harness, not the methods: do not "
                   "compare them with the paper."]
+    elif summary.checkpoints:
+        used = ", ".join(f"{m}: `{f}`" if f else f"{m}: **untrained**" for m, f in summary.checkpoints.items())
+        lines += ["", f"Trained weights (`perception.weights: {sc.perception.weights}`, verified against the zoo "
+                  f"manifest's sha256): {used}."]
     if summary.skipped:
         lines += ["", f"Not run with {sc.perception.modality} input: {', '.join(summary.skipped)} "
                   "(early fusion ships raw LiDAR points)."]

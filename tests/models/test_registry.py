@@ -99,15 +99,12 @@ def test_cooperative_forward_and_predict_every_method(method: str) -> None:
     clouds, poses, valid = _lidar_batch()
     with torch.no_grad():
         out = model(clouds, poses, valid)
-        res = model.predict(out, poses, valid, score_threshold=0.05)
         # an absent agent's data does not matter
         clouds[0][-1] = torch.full((100, 4), 7.0)
         out2 = model(clouds, poses, valid)
     assert out["dynamic"].shape == (1, 2, 256, 256) and out["static"].shape == (1, 3, 256, 256)
     assert out["det_cls"].shape == (1, 2, 128, 128) and out["fused"].shape == (1, 64, 32, 32)
     assert torch.equal(out["dynamic"], out2["dynamic"])
-    assert set(res) == {"vehicle", "road", "lane", "boxes"} and res["vehicle"].shape == (1, 256, 256)
-    assert res["boxes"][0].shape[1] == 6
 
 
 def test_camera_pipeline_rejects_early() -> None:
@@ -141,9 +138,7 @@ def test_camera_pipeline(method: str) -> None:
     valid = torch.tensor([[True, True]])
     with torch.no_grad():
         out = model(inputs, poses, valid)
-        res = model.predict(out, poses, valid)
     assert out["dynamic"].shape == (1, 2, 256, 256) and "det_cls" not in out
-    assert set(res) == {"vehicle", "road", "lane"} and res["lane"].shape == (1, 256, 256)
 
 
 def test_cobevt_fuses_as_many_agents_as_a_scenario_allows() -> None:
