@@ -3,7 +3,8 @@
     models/weights/manifest.json
       {"format": "v2vsim-zoo", "version": 1,
        "zoos": {"pointpillars_tiny": {
-           "methods": {"none": "single.pt", "late": "single.pt", "cobevt": "cobevt.pt", ...},
+           "encoder": "single.pt",             # the encoder every CAV runs (single-agent stage)
+           "methods": {"none": "none.pt", "late": "none.pt", "cobevt": "cobevt.pt", ...},
            "files": {"cobevt.pt": {"sha256": ..., "bytes": ..., "stage": ..., "command": ...,
                                    "data": {...}, "wall_s": ..., "validation": {...}}, ...}}}}
 
@@ -64,7 +65,8 @@ def zoo_entry(encoder: str, preset: str, root: Path = WEIGHTS_DIR) -> dict | Non
 
 
 def method_file(entry: dict, method: str, root: Path, encoder: str, preset: str) -> Path | None:
-    name = entry["methods"].get(method)
+    """The checkpoint of `method` ("encoder": the file with the CAVs' encoder), None if not shipped."""
+    name = entry.get("encoder") if method == "encoder" else entry["methods"].get(method)
     return None if name is None else root / zoo_name(encoder, preset) / name
 
 
@@ -100,10 +102,13 @@ def save_checkpoint(path: Path, state_dict: dict, *, encoder: str, preset: str, 
 
 
 def register(path: Path, *, encoder: str, preset: str, methods: list[str], info: dict,
-             root: Path = WEIGHTS_DIR) -> None:
-    """Add (or replace) a checkpoint file in the manifest, with its sha256 and size."""
+             root: Path = WEIGHTS_DIR, provides_encoder: bool = False) -> None:
+    """Add (or replace) a checkpoint file in the manifest, with its sha256 and size; `provides_encoder`:
+    this file holds the encoder every CAV runs (the single-agent stage)."""
     doc = read_manifest(root)
-    entry = doc["zoos"].setdefault(zoo_name(encoder, preset), {"methods": {}, "files": {}})
+    entry = doc["zoos"].setdefault(zoo_name(encoder, preset), {"encoder": None, "methods": {}, "files": {}})
+    if provides_encoder:
+        entry["encoder"] = path.name
     entry["files"][path.name] = {"sha256": sha256(path), "bytes": path.stat().st_size, **info}
     for m in methods:
         entry["methods"][m] = path.name

@@ -98,7 +98,7 @@ def build_agent_encoder(sc: Scenario) -> nn.Module:
     """The encoder every CAV runs; identical in every process for a given scenario."""
     _seed(sc, "encoder")
     enc = build_encoder(sc.perception.encoder, sc.perception.preset, bev_size_m=sc.bev.size_m)
-    _load(enc, _state(sc, "none"), "encoder.")
+    _load(enc, _state(sc, "encoder"), "encoder.")
     return enc.eval()
 
 
@@ -117,7 +117,7 @@ def check_scenario(sc: Scenario) -> None:
     if not runnable_methods(sc):
         raise ConfigError(f"{sc.source}: perception.methods: nothing to run for modality "
                           f"{sc.perception.modality!r} (early fusion needs LiDAR)")
-    for m in runnable_methods(sc):  # every checkpoint a process will load: verified before any starts
+    for m in ("encoder", *runnable_methods(sc)):  # every checkpoint a process loads: verified before any starts
         _state(sc, m)
 
 

@@ -18,7 +18,7 @@ from v2vsim.perception import build_agent_encoder, build_method_models, check_sc
 def test_every_shipped_checkpoint_matches_its_sha256_and_loads() -> None:
     entry = zoo.zoo_entry("pointpillars", "tiny")
     assert entry is not None, "models/weights/manifest.json ships no pointpillars_tiny zoo"
-    assert set(entry["methods"]) == set(METHODS)
+    assert set(entry["methods"]) == set(METHODS) and entry["encoder"] in entry["files"]
     total = 0
     for name, info in entry["files"].items():
         path = zoo.WEIGHTS_DIR / "pointpillars_tiny" / name

@@ -49,7 +49,7 @@ from v2vsim.perception import FusionInputs, encode_points, late_outputs
 from v2vsim.training.cache import FeatureCache, build_feature_cache
 
 FUSION_STAGES = ("attfuse", "fcooper", "v2vnet", "cobevt", "disconet")
-STAGE_ORDER = ("single", "cache", "early", *FUSION_STAGES)
+STAGE_ORDER = ("single", "cache", "none", "early", *FUSION_STAGES)
 CHECKPOINT_EVERY_S = 300.0
 CACHE_STRIDE = 1
 
@@ -74,7 +74,10 @@ class StageSpec:
 
 
 SPECS: dict[str, StageSpec] = {
-    "single": StageSpec("single", ("none", "late"), "points", "self", 3, 2000, 4, 2e-3, 1, (0,)),
+    "single": StageSpec("single", (), "points", "self", 3, 2000, 4, 2e-3, 1, (0,)),
+    # `none` (and `late`, whose CAVs run the same heads) get the fine-tuning every fusion method gets,
+    # on the same cached features, so that no method wins by training its heads longer.
+    "none": StageSpec("none", ("none", "late"), "cache", "self", 2, 1200, 4, 2e-3, 1, (0,)),
     "early": StageSpec("early", ("early",), "points", "coop", 2, 600, 2, 1e-3, 5, (0, 1, 2)),
     # Neighbours 0 or 1 frame old: a 27 Mbps link delivers feature messages one frame (100 ms) late.
     **{m: StageSpec(m, (m,), "cache", "coop", 2, 1200, 4, 2e-3, 5, (0, 1)) for m in FUSION_STAGES},
@@ -225,7 +228,7 @@ def validate(spec: StageSpec, model: nn.Module, single: nn.Module, ds: Cooperati
     """Metrics of the stage's methods on `n` validation samples (spread over the split)."""
     model.eval()
     single.eval()
-    models = {"none": model, "late": model} if spec.name == "single" else {spec.name: model}
+    models = {m: model for m in spec.methods} if spec.methods else {"none": model, "late": model}
     idx = np.linspace(0, len(ds) - 1, min(n, len(ds))).round().astype(int)
     return evaluate_samples(models, single, ds, [int(i) for i in idx], cache)
 
@@ -276,7 +279,8 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
                              egos="first", with_points=cache is None or spec.name == "disconet",
                              stride=2)
     model = build_stage_model(args, spec).to(dev)
-    single = model if spec.name == "single" else build_stage_model(args, SPECS["early"])  # single-agent weights
+    # the single-agent model: its encoder makes the wire features; with its heads, CAVs' late outputs
+    single = model if spec.name in ("single", "none") else build_stage_model(args, SPECS["early"])
     teacher = None
     if spec.distill_weight > 0:
         teacher = build_cooperative(args.encoder, "early", args.preset)
@@ -379,7 +383,7 @@ def export(args: TrainArgs, spec: StageSpec, state: dict, history: list, wall_s:
         "validation": history[-1]["validation"] if history else None,
     }
     zoo.register(path, encoder=args.encoder, preset=args.preset, methods=list(spec.methods), info=info,
-                 root=args.out)
+                 root=args.out, provides_encoder=spec.name == "single")
     return path
 
 

@@ -35,7 +35,7 @@ def test_a_few_steps_lower_the_loss(tiny_dataset, tmp_path) -> None:
         opt.zero_grad()
         loss["total"].backward()
         opt.step()
-        losses.append(float(loss["total"]))
+        losses.append(float(loss["total"].detach()))
     assert set(loss) == {"dyn", "static", "det", "total"}
     assert losses[-1] < 0.7 * losses[0], losses
 
@@ -44,18 +44,20 @@ def test_stages_chain_into_a_loadable_zoo(tiny_dataset, tmp_path) -> None:
     log = io.StringIO()
     run_stage(_args(tiny_dataset, tmp_path, "single"), log=log)
     run_stage(_args(tiny_dataset, tmp_path, "cache"), log=log)
+    run_stage(_args(tiny_dataset, tmp_path, "none"), log=log)
     run_stage(_args(tiny_dataset, tmp_path, "cobevt"), log=log)
     text = log.getvalue()
     assert "samples/s" in text and "ETA" in text and "validation: cobevt: IoU veh" in text
     entry = zoo.read_manifest(tmp_path / "zoo")["zoos"]["pointpillars_tiny"]
-    assert entry["methods"] == {"none": "single.pt", "late": "single.pt", "cobevt": "cobevt.pt"}
+    assert entry["encoder"] == "single.pt"
+    assert entry["methods"] == {"none": "none.pt", "late": "none.pt", "cobevt": "cobevt.pt"}
     info = entry["files"]["cobevt.pt"]
     assert info["data"]["runs"]["train"] == ["intersection_s700"] and info["wall_s"] > 0
-    assert info["validation"]["cobevt"]["frames"] == 2
+    assert info["validation"]["cobevt"]["frames"] == 1  # 2 validation frames, every 2nd one scored
 
     sc = load_scenario("scenarios/intersection.yaml", [f"perception.weights={tmp_path / 'zoo'}"])
     assert method_checkpoints(sc, ("none", "cobevt", "v2vnet")) == {
-        "none": "pointpillars_tiny/single.pt", "cobevt": "pointpillars_tiny/cobevt.pt", "v2vnet": None}
+        "none": "pointpillars_tiny/none.pt", "cobevt": "pointpillars_tiny/cobevt.pt", "v2vnet": None}
     enc = build_agent_encoder(sc)
     models = build_method_models(sc, enc, ("none", "cobevt"))
     saved = torch.load(tmp_path / "zoo" / "pointpillars_tiny" / "cobevt.pt", weights_only=True)["state_dict"]
