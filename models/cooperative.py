@@ -95,9 +95,10 @@ class CooperativePerception(nn.Module):
             fused = feats[:, 0]
             return {"fused": fused, **self.heads(fused)}
         if self.method == "early":
-            merged = [
-                [merge_points_to_ego(list(inputs[i]), rel_poses[i].cpu(), valid[i].cpu())] for i in range(len(inputs))
-            ]
+            merged = []
+            for i in range(len(inputs)):
+                n = len(inputs[i])  # a batch pads rel_poses / valid to its largest agent count
+                merged.append([merge_points_to_ego(list(inputs[i]), rel_poses[i, :n].cpu(), valid[i, :n].cpu())])
             fused = self.encode(merged, torch.ones(len(inputs), 1, dtype=torch.bool, device=valid.device))[:, 0]
             return {"fused": fused, **self.heads(fused)}
         feats = self.encode(inputs, valid)  # [B, L, C, F, F]

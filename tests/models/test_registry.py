@@ -151,3 +151,19 @@ def test_cobevt_fuses_as_many_agents_as_a_scenario_allows() -> None:
     x = torch.randn(1, 16, 64, 8, 8)
     with torch.no_grad():
         assert fusion(x, torch.ones(1, 16, dtype=torch.bool)).shape == (1, 64, 8, 8)
+
+
+def test_early_fusion_takes_a_padded_batch() -> None:
+    """A training batch pads rel_poses / valid to its largest agent count; early fusion merges only the
+    clouds each item has (regression: 'N clouds, M poses')."""
+    torch.manual_seed(0)
+    model = build_cooperative("pointpillars", "early", "tiny").eval()
+    g = torch.Generator().manual_seed(1)
+    clouds = [[torch.rand(400, 4, generator=g) * 20 for _ in range(3)], [torch.rand(400, 4, generator=g) * 20]]
+    poses = torch.zeros(2, 3, 3)
+    valid = torch.tensor([[True, True, True], [True, False, False]])
+    with torch.no_grad():
+        out = model(clouds, poses, valid)
+        alone = model([clouds[1]], poses[1:, :1], valid[1:, :1])
+    assert out["dynamic"].shape == (2, 2, 256, 256)
+    assert torch.allclose(out["dynamic"][1], alone["dynamic"][0], atol=1e-5)

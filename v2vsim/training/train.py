@@ -281,7 +281,8 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
     cache = FeatureCache(args.work / "cache") if spec.inputs == "cache" or spec.name == "disconet" else None
     train = CooperativeDataset(args.data, "train", max_agents=spec.max_agents, delays=spec.delays, seed=args.seed,
                                with_points=spec.inputs == "points" or spec.distill_weight > 0, stride=spec.stride)
-    val = CooperativeDataset(args.data, "val", max_agents=spec.max_agents if spec.name != "single" else 5,
+    val = CooperativeDataset(args.data, "val", max_agents=5 if "late" in spec.methods or not spec.methods
+                             else spec.max_agents,
                              egos="first", with_points=cache is None or spec.name == "disconet",
                              stride=2)
     model = build_stage_model(args, spec).to(dev)
