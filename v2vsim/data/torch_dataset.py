@@ -134,7 +134,7 @@ class CooperativeDataset(Dataset):
             seen = set(str(x) for x in f[f"seen_{key.ego}"])
             own = np.array([str(x) in seen for x in f[f"boxids_{key.ego}"]], dtype=bool).reshape(-1)
             ego_pose = _pose(poses, cavs, key.ego)
-            delay = self._delay(i) if key.frame > 0 else 0
+            delay = min(self._delay(i), key.frame)  # nothing was sent before frame 0
             src = {c: key.frame for c in agents}
             clouds: dict[str, np.ndarray] = {}
             agent_poses = {c: _pose(poses, cavs, c) for c in agents}

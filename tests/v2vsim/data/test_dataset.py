@@ -72,6 +72,9 @@ def test_delayed_neighbours_come_from_an_earlier_frame(tiny_dataset) -> None:
         pytest.skip("no neighbour in range in these frames")
     s = ds[with_nb[0]]
     assert s["agent_frames"][0] == s["key"].frame and s["agent_frames"][1] == s["key"].frame - 1
+    # a delay longer than the run so far reaches back to frame 0 at most
+    far = CooperativeDataset(tiny_dataset, "train", max_agents=4, delays=(3,))
+    assert all(min(far[i]["agent_frames"]) >= 0 for i in range(len(far)))
 
 
 def test_masks_pack_round_trip() -> None:
