@@ -86,7 +86,9 @@ SPECS: dict[str, StageSpec] = {
     # Neighbours 0 or 1 frame old: a 27 Mbps link delivers feature messages one frame (100 ms) late.
     **{m: StageSpec(m, (m,), "cache", "coop", 2, 1200, 4, 2e-3, 5, (0, 1)) for m in FUSION_STAGES},
 }
-SPECS["disconet"] = dataclasses.replace(SPECS["disconet"], distill_weight=1e3)
+# KL per cell starts near 0.1 here; weight 10 puts distillation on the scale of the perception losses
+# (1e3 made it ~100x them).
+SPECS["disconet"] = dataclasses.replace(SPECS["disconet"], distill_weight=10.0)
 
 
 @dataclass(frozen=True)
