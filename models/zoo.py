@@ -23,7 +23,7 @@ import torch
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 MANIFEST = "manifest.json"
-REBUILD = "make zoo  (or the stage's own command in the manifest; see README 'Training')"
+REBUILD = "make zoo"
 
 
 class ZooError(Exception):
@@ -73,7 +73,9 @@ def method_file(entry: dict, method: str, root: Path, encoder: str, preset: str)
 def load_checkpoint(path: Path, entry: dict) -> dict:
     """A verified checkpoint's state_dict; ZooError naming the file and the rebuild command otherwise."""
     info = entry["files"].get(path.name)
-    command = (info or {}).get("command", REBUILD)
+    stage = (info or {}).get("stage")
+    command = REBUILD + (f" (this stage alone: v2vsim train --data DATA --stage {stage} --out {path.parent.parent}; "
+                         f"README 'Training')" if stage else " (README 'Training')")
     if not path.is_file():
         raise ZooError(f"{path}: checkpoint missing; rebuild it with: {command}")
     if info is None:
