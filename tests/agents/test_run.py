@@ -97,7 +97,9 @@ def test_run_writes_report_metrics_recording_and_plots(tmp_path: Path) -> None:
     assert sum(m["neighbours_in_range"].values()) == pytest.approx(1.0)
     assert m["ap_sort"] == "global"
     report = (out / "report.md").read_text()
-    assert "| cobevt |" in report and "untrained" in report
+    # the shipped zoo loads: the report names every method's checkpoint and no longer says "untrained"
+    assert "| cobevt |" in report and "`pointpillars_tiny/cobevt.pt`" in report and "untrained" not in report
+    assert m["checkpoints"]["late"] == "pointpillars_tiny/none.pt" and None not in m["checkpoints"].values()
     assert "CAVs within comm range of cav0" in report and "sorted over the whole run" in report
     for png in ("iou_by_method.png", "iou_per_frame.png"):
         assert (out / png).read_bytes()[:4] == b"\x89PNG"
