@@ -21,14 +21,8 @@ import torch  # noqa: E402
 from models.fusion.early import merge_points_to_ego  # noqa: E402
 from v2vsim.config import load_scenario  # noqa: E402
 from v2vsim.data.torch_dataset import CooperativeDataset  # noqa: E402
-from v2vsim.perception import (  # noqa: E402
-    FusionInputs,
-    build_agent_encoder,
-    build_method_models,
-    encode_points,
-    late_outputs,
-    predict,
-)
+from v2vsim.perception import build_agent_encoder, build_method_models, predict  # noqa: E402
+from v2vsim.training.train import sample_fusion_inputs  # noqa: E402
 
 
 def main() -> None:
@@ -44,6 +38,7 @@ def main() -> None:
     sc = load_scenario("scenarios/intersection.yaml")
     enc = build_agent_encoder(sc)
     models = build_method_models(sc, enc, methods)
+    single = build_method_models(sc, enc, ("late",))["late"]  # what each CAV runs for its late outputs
     ds = CooperativeDataset(a.data, a.split, max_agents=5, egos="first")
     counts = [len(ds[i]["agents"]) for i in range(0, len(ds), 5)]
     order = np.argsort(-np.array(counts), kind="stable")[: a.samples] * 5
@@ -51,14 +46,7 @@ def main() -> None:
     axes = np.atleast_2d(axes)
     for r, i in enumerate(order):
         s = ds[int(i)]
-        inp = FusionInputs(senders=list(s["agents"]), rel_poses=s["rel_poses"].numpy())
-        for j, c in enumerate(s["agents"]):
-            pts = s["points"][j].numpy()
-            feats = encode_points(enc, pts)
-            inp.features[c] = feats.astype(np.float16).astype(np.float32)
-            inp.points[c] = pts
-            maps, boxes = late_outputs(models.get("late", models[methods[0]]), feats)
-            inp.outputs[c] = (maps.astype(np.float16).astype(np.float32), boxes)
+        inp = sample_fusion_inputs(s, single)
         merged = merge_points_to_ego(list(s["points"]), s["rel_poses"]).numpy()
         res = 100 / 256
         rr, cc = ((50 - merged[:, 0]) / res).astype(int), ((50 - merged[:, 1]) / res).astype(int)

@@ -82,15 +82,13 @@ def _cmd_dataset(args: argparse.Namespace) -> int:
 
 def _cmd_train(args: argparse.Namespace) -> int:
     from v2vsim.data.layout import DatasetError
-    from v2vsim.training.train import SPECS, TrainArgs, command_line, main_train
+    from v2vsim.training.train import TrainArgs, command_line, main_train
 
     overrides = {k: getattr(args, k) for k in ("epochs", "samples_per_epoch", "batch", "lr", "val_samples")
                  if getattr(args, k) is not None}
     targs = TrainArgs(data=Path(args.data), stage=args.stage, out=Path(args.out), work=Path(args.work),
                       device=args.device, threads=args.threads, seed=args.seed, resume=args.resume,
-                      overrides=tuple(overrides.items()), command=command_line(sys.argv[2:] if args.argv is None
-                                                                                 else args.argv))
-    assert set(overrides) <= set(SPECS["single"].__dataclass_fields__)
+                      overrides=tuple(overrides.items()), command=command_line(sys.argv[2:]))
     if args.device.startswith("cuda"):
         import torch
 
@@ -186,7 +184,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--batch", type=int, default=None, help="override the stage's default")
     p.add_argument("--lr", type=float, default=None, help="override the stage's default (peak, one-cycle)")
     p.add_argument("--val-samples", type=int, default=None, help="validation samples after each epoch")
-    p.set_defaults(func=_cmd_train, argv=None)
+    p.set_defaults(func=_cmd_train)
 
     p = sub.add_parser("models", help="list every encoder and fusion method: parameters, stage shapes")
     p.add_argument("--preset", choices=["tiny", "paper"], default="tiny")

@@ -16,7 +16,7 @@ sensing CAVs themselves count as visible (each knows where it is).
 from __future__ import annotations
 
 import math
-from collections.abc import Collection, Iterable
+from collections.abc import Collection, Iterable, Mapping
 
 import numpy as np
 
@@ -82,10 +82,12 @@ def gt_boxes(world: WorldState, ego_id: str, bev: BevConfig, include_ego: bool =
 
 
 def bev_ground_truth(world: WorldState, ego_id: str, bev: BevConfig, visible_ids: Collection[str],
-                     assets: MapAssets | None = None) -> dict[str, np.ndarray]:
+                     assets: MapAssets | None = None,
+                     more_visible: Mapping[str, Collection[str]] | None = None) -> dict[str, np.ndarray]:
     """{"dynamic", "visible", "road", "lane"} bool masks on the ego's BEV grid (see module doc).
 
     Pass `assets` (build_map_assets once per map); without it the map is rasterised here (slow).
+    `more_visible`: further visibility masks by name, e.g. {"visible_self": ids the ego itself saw}.
     """
     grid = BevGrid(bev.size_m, bev.cells)
     if assets is None:
@@ -98,12 +100,15 @@ def bev_ground_truth(world: WorldState, ego_id: str, bev: BevConfig, visible_ids
     wxy = np.stack([ego.x + c * centres[..., 0] - s * centres[..., 1],
                     ego.y + s * centres[..., 0] + c * centres[..., 1]], axis=-1)
     bits = assets.ground.sample(wxy)
-    return {
+    out = {
         "dynamic": rasterise_boxes(boxes, grid),
         "visible": rasterise_boxes(boxes[vis], grid),
         "road": (bits & GROUND_ROAD) > 0,
         "lane": (bits & GROUND_GT_LANE) > 0,
     }
+    for name, seen in (more_visible or {}).items():
+        out[name] = rasterise_boxes(boxes[np.array([i in seen for i in ids], dtype=bool)], grid)
+    return out
 
 
 def visible_actor_ids(lidar_sweeps: Iterable[LidarSweep], camera_frames: Iterable[CameraFrame],

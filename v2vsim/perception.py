@@ -68,18 +68,20 @@ def method_checkpoints(sc: Scenario, methods: tuple[str, ...]) -> dict[str, str 
     return out
 
 
-def _state(sc: Scenario, method: str) -> dict | None:
-    """Verified state_dict of `method`'s checkpoint (None: random weights); ConfigError when broken."""
+def _states(sc: Scenario, methods: tuple[str, ...]) -> dict[str, dict | None]:
+    """Verified state_dict of each method's checkpoint ("encoder": the CAVs' encoder; None: random
+    weights), every file read and hashed once; ConfigError naming the file when one is broken."""
     z = zoo_for(sc)
     if z is None:
-        return None
-    f = zoo.method_file(z[1], method, z[0], sc.perception.encoder, sc.perception.preset)
-    if f is None:
-        return None
+        return dict.fromkeys(methods)
+    files = {m: zoo.method_file(z[1], m, z[0], sc.perception.encoder, sc.perception.preset) for m in methods}
+    loaded: dict[Path, dict] = {}
     try:
-        return zoo.load_checkpoint(f, z[1])
+        for f in {f for f in files.values() if f is not None}:
+            loaded[f] = zoo.load_checkpoint(f, z[1])
     except zoo.ZooError as e:
         raise ConfigError(str(e)) from None
+    return {m: None if f is None else loaded[f] for m, f in files.items()}
 
 
 def _seed(sc: Scenario, what: str) -> None:
@@ -98,7 +100,7 @@ def build_agent_encoder(sc: Scenario) -> nn.Module:
     """The encoder every CAV runs; identical in every process for a given scenario."""
     _seed(sc, "encoder")
     enc = build_encoder(sc.perception.encoder, sc.perception.preset, bev_size_m=sc.bev.size_m)
-    _load(enc, _state(sc, "encoder"), "encoder.")
+    _load(enc, _states(sc, ("encoder",))["encoder"], "encoder.")
     return enc.eval()
 
 
@@ -117,8 +119,7 @@ def check_scenario(sc: Scenario) -> None:
     if not runnable_methods(sc):
         raise ConfigError(f"{sc.source}: perception.methods: nothing to run for modality "
                           f"{sc.perception.modality!r} (early fusion needs LiDAR)")
-    for m in ("encoder", *runnable_methods(sc)):  # every checkpoint a process loads: verified before any starts
-        _state(sc, m)
+    _states(sc, ("encoder", *runnable_methods(sc)))  # every checkpoint a process loads, verified before any starts
 
 
 def build_compressor(sc: Scenario, channels: int) -> ChannelCompressor | None:
@@ -146,11 +147,12 @@ def decompress(comp: ChannelCompressor | None, payload: np.ndarray) -> np.ndarra
 
 def build_method_models(sc: Scenario, encoder: nn.Module, methods: tuple[str, ...]) -> dict[str, nn.Module]:
     """One CooperativePerception per method, all sharing `encoder` (every method fuses the same messages)."""
+    states = _states(sc, methods)
     out = {}
     for m in methods:
         _seed(sc, f"method:{m}")
         model = build_cooperative(sc.perception.encoder, m, sc.perception.preset, bev_size_m=sc.bev.size_m)
-        state = _state(sc, m)
+        state = states[m]
         if m == "early":  # early fusion's encoder runs at the ego on merged clouds: its own weights
             _load(model.encoder, state, "encoder.")
         else:

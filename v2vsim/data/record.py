@@ -67,8 +67,7 @@ def record_frame(world: WorldState, sc: Scenario, assets: object, cameras: bool)
         "time": np.float64(world.time),
     }
     for c, sf in sensed.items():
-        gt = bev_ground_truth(world, c, sc.bev, union, assets=assets)
-        gt["visible_self"] = bev_ground_truth(world, c, sc.bev, seen[c], assets=assets)["visible"]
+        gt = bev_ground_truth(world, c, sc.bev, union, assets=assets, more_visible={"visible_self": seen[c]})
         boxes, ids = gt_boxes(world, c, sc.bev)
         out[f"points_{c}"] = body_frame_points(sf, sc).astype(np.float16)
         out[f"gt_{c}"] = pack_masks(gt)

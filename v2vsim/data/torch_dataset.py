@@ -11,6 +11,7 @@ frame k: the misalignment a late message causes in a run (DESIGN.md "Latency mat
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 from collections.abc import Sequence
@@ -125,7 +126,9 @@ class CooperativeDataset(Dataset):
         run = self.store.runs[key.run]
         rng_m = self.range_m if self.range_m is not None else run["range_m"]
         cells = run["bev"]["cells"]
-        with self.store.frame(key.run, key.frame) as f:
+        delay = min(self._delay(i), key.frame)  # nothing was sent before frame 0
+        with contextlib.ExitStack() as stack:
+            f = stack.enter_context(self.store.frame(key.run, key.frame))
             cavs = [str(c) for c in f["cavs"]]
             poses = f["poses"]
             agents = select_agents(cavs, poses, key.ego, rng_m, self.max_agents)
@@ -134,27 +137,17 @@ class CooperativeDataset(Dataset):
             seen = set(str(x) for x in f[f"seen_{key.ego}"])
             own = np.array([str(x) in seen for x in f[f"boxids_{key.ego}"]], dtype=bool).reshape(-1)
             ego_pose = _pose(poses, cavs, key.ego)
-            delay = min(self._delay(i), key.frame)  # nothing was sent before frame 0
+            # Each agent's data and pose from the frame it was captured at: the ego's now, a neighbour's
+            # `delay` frames earlier when it was present then.
             src = {c: key.frame for c in agents}
-            clouds: dict[str, np.ndarray] = {}
-            agent_poses = {c: _pose(poses, cavs, c) for c in agents}
-            if self.with_points:
-                clouds[key.ego] = f[f"points_{key.ego}"]
-        if delay:
-            with self.store.frame(key.run, key.frame - delay) as g:
+            files = {key.frame: (f, cavs, poses)}  # frame -> (file, its CAVs, their poses)
+            if delay:
+                g = stack.enter_context(self.store.frame(key.run, key.frame - delay))
                 old = [str(c) for c in g["cavs"]]
-                for c in agents[1:]:
-                    if c in old:
-                        src[c] = key.frame - delay
-                        agent_poses[c] = _pose(g["poses"], old, c)
-                        if self.with_points:
-                            clouds[c] = g[f"points_{c}"]
-        if self.with_points:
-            missing = [c for c in agents if c not in clouds]
-            if missing:
-                with self.store.frame(key.run, key.frame) as f:
-                    for c in missing:
-                        clouds[c] = f[f"points_{c}"]
+                files[key.frame - delay] = (g, old, g["poses"])
+                src.update({c: key.frame - delay for c in agents[1:] if c in old})
+            agent_poses = {c: _pose(files[src[c]][2], files[src[c]][1], c) for c in agents}
+            clouds = {c: files[src[c]][0][f"points_{c}"] for c in agents} if self.with_points else {}
         rel = np.array([relative_pose(ego_pose, agent_poses[c]) for c in agents], dtype=np.float32)
         return {
             "points": [torch.from_numpy(clouds[c].astype(np.float32)) for c in agents] if self.with_points else [],

@@ -173,7 +173,7 @@ def build_stage_model(args: TrainArgs, spec: StageSpec) -> nn.Module:
 
 
 def trainable(model: nn.Module, spec: StageSpec) -> list[nn.Parameter]:
-    if spec.inputs == "cache" or spec.name == "disconet":
+    if spec.inputs == "cache":
         for p in model.encoder.parameters():
             p.requires_grad_(False)
         return [*model.fusion.parameters(), *model.heads.parameters()]
@@ -203,7 +203,7 @@ def _features(cache: FeatureCache, batch: dict, channels: int, cells: int) -> Te
 def forward(model: nn.Module, spec: StageSpec, batch: dict, cache: FeatureCache | None, dev: torch.device
             ) -> dict[str, Tensor]:
     rel, valid = batch["rel_poses"].to(dev), batch["valid"].to(dev)
-    if spec.inputs == "cache" or spec.name == "disconet":
+    if spec.inputs == "cache":
         enc = model.encoder
         feats = _features(cache, batch, enc.out_channels, enc.out_cells).to(dev)
         fused = model.fuse(feats, rel, valid)
@@ -242,27 +242,35 @@ def validate(spec: StageSpec, model: nn.Module, single: nn.Module, ds: Cooperati
 
 
 @torch.no_grad()
+def sample_fusion_inputs(s: dict, single: nn.Module, cache: FeatureCache | None = None, late: bool = True
+                         ) -> FusionInputs:
+    """A dataset sample as the ego's FusionInputs, as they arrive off the wire: features float16 (from
+    `single`'s encoder, or the cache), late outputs computed by each CAV from its float32 features
+    with `single`'s heads and shipped as float16 maps + float32 boxes, points float32."""
+    inp = FusionInputs(senders=list(s["agents"]), rel_poses=s["rel_poses"].numpy())
+    for j, (c, k) in enumerate(zip(s["agents"], s["agent_frames"], strict=True)):
+        if cache is not None:
+            feats = cache.get(s["key"].run, k, c).astype(np.float32)
+        else:
+            feats = encode_points(single.encoder, s["points"][j].numpy())
+        inp.features[c] = feats.astype(np.float16).astype(np.float32)
+        if s["points"]:
+            inp.points[c] = s["points"][j].numpy()
+        if late:
+            maps, boxes = late_outputs(single, feats)
+            inp.outputs[c] = (maps.astype(np.float16).astype(np.float32), boxes)
+    return inp
+
+
+@torch.no_grad()
 def evaluate_samples(models: dict[str, nn.Module], single: nn.Module, ds: CooperativeDataset, idx: list[int],
                      cache: FeatureCache | None = None) -> dict[str, dict]:
     """metrics.json-style scores of `models` on dataset samples, through the ego's own scoring
-    (v2vsim.evaluate.fuse_and_score) with inputs as they arrive off the wire: features float16 (from
-    `single`'s encoder, or the cache), late outputs computed by each CAV from its float32 features
-    and shipped as float16 maps + float32 boxes, points float32."""
+    (v2vsim.evaluate.fuse_and_score) on `sample_fusion_inputs`."""
     scores = {m: MethodScore(boxes=ApAccumulator()) for m in models}
     for i in idx:
         s = ds[i]
-        inp = FusionInputs(senders=list(s["agents"]), rel_poses=s["rel_poses"].numpy())
-        for j, (c, k) in enumerate(zip(s["agents"], s["agent_frames"], strict=True)):
-            if cache is not None:
-                feats = cache.get(s["key"].run, k, c).astype(np.float32)
-            else:
-                feats = encode_points(single.encoder, s["points"][j].numpy())
-            inp.features[c] = feats.astype(np.float16).astype(np.float32)
-            if s["points"]:
-                inp.points[c] = s["points"][j].numpy()
-            if "late" in models:
-                maps, boxes = late_outputs(single, feats)
-                inp.outputs[c] = (maps.astype(np.float16).astype(np.float32), boxes)
+        inp = sample_fusion_inputs(s, single, cache, late="late" in models)
         gt = {"dynamic": s["dynamic"].numpy(), "visible": s["vehicle"].numpy(), "road": s["road"].numpy(),
               "lane": s["lane"].numpy()}
         fuse_and_score(models, inp, gt["road"].shape[0], gt, s["boxes"].numpy(), scores)
@@ -280,12 +288,12 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
                             log=log)
         return {}
     spec = dataclasses.replace(SPECS[args.stage], **dict(args.overrides))
-    cache = FeatureCache(args.work / "cache") if spec.inputs == "cache" or spec.name == "disconet" else None
+    cache = FeatureCache(args.work / "cache") if spec.inputs == "cache" else None
     train = CooperativeDataset(args.data, "train", max_agents=spec.max_agents, delays=spec.delays, seed=args.seed,
                                with_points=spec.inputs == "points" or spec.distill_weight > 0, stride=spec.stride)
     val = CooperativeDataset(args.data, "val", max_agents=5 if "late" in spec.methods or not spec.methods
                              else spec.max_agents,
-                             egos="first", with_points=cache is None or spec.name == "disconet",
+                             egos="first", with_points=cache is None,
                              stride=2)
     model = build_stage_model(args, spec).to(dev)
     # the single-agent model: its encoder makes the wire features; with its heads, CAVs' late outputs
@@ -330,7 +338,7 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
     samples = 0
     while epoch < spec.epochs:
         model.train()
-        if spec.inputs == "cache" or spec.name == "disconet":
+        if spec.inputs == "cache":
             model.encoder.eval()
         train.epoch = epoch
         perm = np.random.default_rng([args.seed, epoch]).permutation(len(train))
