@@ -39,8 +39,8 @@ What the backend does, net-agnostically:
    drive off together), and in the second half of the trials a CAV may share an earlier CAV's
    arm (another lane, or behind it). The search stops at the first candidate that qualifies
    from min(N, arms) arms. Only the topology analysis above is used, so it works on any net;
-   the whole procedure is deterministic per seed, and the choice is cached per scenario in the
-   process (`placement` on the backend says which candidate won and how it scored). With
+   the whole procedure is deterministic per seed, and a backend keeps its choice for later resets
+   (`placement` on the backend says which candidate won and how it scored). With
    `cavs.meet.trials: 1` the canonical plan is used unchecked.
    Exit edges are the long arms, so a CAV stays in the simulation for a while after crossing.
 
@@ -59,7 +59,6 @@ import contextlib
 import io
 import itertools
 import math
-import os
 from dataclasses import dataclass
 from types import ModuleType
 
@@ -96,22 +95,8 @@ _BG_CHUNK_S = 30.0  # background departures are generated this far ahead, lazily
 _MAX_DEPART_DELAY_S = 5.0  # a background vehicle that cannot enter for this long is dropped
 
 
-# Chosen placements per scenario (the look-ahead costs a few simulations; a reset of the same
-# scenario reuses its result). Keyed by the frozen Scenario plus the net file's mtime.
-_PLACEMENTS: dict[tuple, tuple[tuple[CavSpec, ...], Placement]] = {}
-
-
 _ONE_SIM = ("another SUMO simulation is running in this process (libsumo allows one); close() its "
             "backend before starting a new one")
-
-
-def _cache_key(sc: Scenario) -> tuple | None:
-    try:
-        key = (sc, os.stat(sc.traffic.net).st_mtime_ns)
-        hash(key)
-    except (OSError, TypeError):
-        return None
-    return key
 
 
 def _libsumo() -> ModuleType:
@@ -305,6 +290,7 @@ class SumoBackend(BackendBase):
         self._bg_count = 0
         self.cav_plans: tuple[CavPlan, ...] = ()
         self.placement: Placement | None = None
+        self._chosen: tuple[CavSpec, ...] | None = None  # the look-ahead's choice; a later reset() reuses it
 
     # -- public API ----------------------------------------------------------------------------
 
@@ -315,7 +301,7 @@ class SumoBackend(BackendBase):
     def reset(self) -> WorldState:
         """Start SUMO, run the warm-up with background traffic, insert the CAVs, return frame 0.
 
-        The CAV placement is chosen first by looking ahead (see module doc; cached per scenario).
+        The CAV placement is chosen first by looking ahead (see module doc; kept for later resets).
         """
         self.close()
         if _libsumo().simulation.isLoaded():
@@ -461,11 +447,8 @@ class SumoBackend(BackendBase):
     def _choose_placement(self) -> tuple[CavSpec, ...]:
         """Simulate candidates ahead; keep the one that meets cavs.meet from the most arms (see module doc)."""
         sc = self.scenario
-        key = _cache_key(sc)
-        hit = _PLACEMENTS.get(key) if key is not None else None
-        if hit is not None:
-            self.placement = hit[1]
-            return hit[0]
+        if self._chosen is not None:
+            return self._chosen
         meet = sc.cavs.meet
         if meet.trials == 1:  # the canonical plan, unchecked
             self.placement = None
@@ -501,10 +484,7 @@ class SumoBackend(BackendBase):
                               neighbours=want, ref_frames=present, frames=len(counts), arms=arms,
                               histogram=tuple(round(float(h), 4) for h in hist))
         self.placement = placement
-        if key is not None:
-            if len(_PLACEMENTS) >= 64:
-                _PLACEMENTS.pop(next(iter(_PLACEMENTS)))
-            _PLACEMENTS[key] = (specs, placement)
+        self._chosen = specs
         return specs
 
     def step(self) -> WorldState:

@@ -14,7 +14,6 @@ from shapely.ops import unary_union
 
 from v2vsim.config import load_scenario
 from v2vsim.traffic import TrafficBackend, make_backend
-from v2vsim.traffic import sumo as sumo_mod
 from v2vsim.traffic.sumo import SumoBackend, _libsumo, sumo_to_pose
 
 SCENARIOS = Path(__file__).resolve().parents[3] / "scenarios"
@@ -121,8 +120,7 @@ def test_placement_search_is_deterministic() -> None:
     sc = _scenario("intersection", "seed=3")
     runs = []
     for _ in range(2):
-        sumo_mod._PLACEMENTS.clear()  # search again from scratch, not from the cache
-        with SumoBackend(sc) as tb:
+        with SumoBackend(sc) as tb:  # a fresh backend searches from scratch
             states = [tb.reset()] + [tb.step() for _ in range(30)]
             runs.append((tb.placement, tb.cav_plans, _signature(states)))
     assert runs[0] == runs[1]
