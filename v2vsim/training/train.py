@@ -77,14 +77,15 @@ class StageSpec:
 
 
 SPECS: dict[str, StageSpec] = {
-    "single": StageSpec("single", (), "points", "self", 2, 1400, 4, 2e-3, 1, (0,), lane_weight=1.0),
+    "single": StageSpec("single", (), "points", "self", 3, 1400, 4, 2e-3, 1, (0,), lane_weight=1.0),
     # `none` (and `late`, whose CAVs run the same heads) get the fine-tuning every fusion method gets,
     # on the same cached features, so that no method wins by training its heads longer.
-    "none": StageSpec("none", ("none", "late"), "cache", "self", 2, 1200, 4, 2e-3, 1, (0,)),
-    # Early fusion re-trains the encoder on merged clouds (~4x the points): the costliest stage per sample.
-    "early": StageSpec("early", ("early",), "points", "coop", 1, 800, 2, 1e-3, 5, (0, 1, 2)),
+    "none": StageSpec("none", ("none", "late"), "cache", "self", 3, 1200, 4, 2e-3, 1, (0,)),
+    # Early fusion re-trains the encoder on merged clouds (~4x the points): the costliest stage per sample,
+    # but it sees as many samples as every other fine-tuning stage (3 x 1200).
+    "early": StageSpec("early", ("early",), "points", "coop", 3, 1200, 2, 1e-3, 5, (0, 1, 2)),
     # Neighbours 0 or 1 frame old: a 27 Mbps link delivers feature messages one frame (100 ms) late.
-    **{m: StageSpec(m, (m,), "cache", "coop", 2, 1200, 4, 2e-3, 5, (0, 1)) for m in FUSION_STAGES},
+    **{m: StageSpec(m, (m,), "cache", "coop", 3, 1200, 4, 2e-3, 5, (0, 1)) for m in FUSION_STAGES},
 }
 # KL per cell starts near 0.1 here; weight 10 puts distillation on the scale of the perception losses
 # (1e3 made it ~100x them).
