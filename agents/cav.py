@@ -3,7 +3,9 @@
 Every frame it senses from its own pose in the WorldState, encodes its BEV features and publishes
 them once, whatever fusion methods are under test (each method fuses the same messages). When
 early or late fusion is under test it also ships its raw points or its own decoded outputs. It
-ends cleanly when its vehicle leaves the simulation. The channel model is applied by receivers.
+ends cleanly when its vehicle leaves the simulation or the driver says `done`, and on its own
+within seconds when the driver dies (its token drops without a bye). The channel model is
+applied by receivers.
 """
 
 from __future__ import annotations
@@ -12,10 +14,21 @@ import json
 import queue
 import sys
 import threading
+import time
 
 import torch
 
-from agents.common import START_TIMEOUT_S, AgentArgs, Bus, parse_agent_args, run_agent
+from agents.common import (
+    DONE_GRACE_S,
+    DRIVER,
+    DRIVER_GRACE_S,
+    START_TIMEOUT_S,
+    AgentArgs,
+    Bus,
+    parse_agent_args,
+    read_key,
+    run_agent,
+)
 from v2vsim.comm.codec import Message, encode
 from v2vsim.gt import visible_actor_ids
 from v2vsim.perception import (
@@ -32,9 +45,7 @@ from v2vsim.sensors.scene import build_map_assets, build_scene
 from v2vsim.world import WorldState
 from v2vsim.world_io import static_from_bytes, world_from_bytes
 
-
-def read_key(path: str | None) -> bytes | None:
-    return None if path is None else open(path, "rb").read().strip()
+__all__ = ["cav_loop", "main", "read_key"]
 
 
 def cav_loop(args: AgentArgs, bus: Bus) -> int:
@@ -55,11 +66,34 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
     bus.ready()
     realtime = sc.transport.clock == "realtime"
     seen = False
-    while not done.is_set():
+    last_world: float | None = None
+    done_at: float | None = None
+    gone_at: float | None = None  # when the driver's token was seen gone without a done
+    frame = -1
+    while True:
+        now = time.monotonic()
+        if done.is_set():
+            done_at = done_at or now
+            # A verified done ends the agent; without comm.auth anyone could have sent it, so it is
+            # believed once the driver is gone too or no world came for DONE_GRACE_S.
+            if bus.authenticated or bus.driver_gone() or now - max(done_at, last_world or 0.0) > DONE_GRACE_S:
+                return 0
         try:
-            data = worlds.get(timeout=0.5)
+            data = worlds.get(timeout=0.2 if done_at or gone_at else 0.5)
         except queue.Empty:
+            if bus.driver_gone() and not done.is_set():
+                gone_at = gone_at or now
+                bye = bus.farewell(DRIVER)
+                if bye is not None:
+                    print(f"v2vsim-cav {me}: the driver ended (exit {bye.get('code')}) after frame {frame}; "
+                          "agent stops", file=sys.stderr, flush=True)
+                    return 0
+                if now - gone_at > DRIVER_GRACE_S:
+                    print(f"v2vsim-cav {me}: the driver died after frame {frame}; agent stops",
+                          file=sys.stderr, flush=True)
+                    return 1
             continue
+        last_world = time.monotonic()
         if realtime:  # sense the newest world; frames we could not keep up with are skipped
             while not worlds.empty():
                 data = worlds.get_nowait()
@@ -68,6 +102,7 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
         except ValueError as e:
             print(f"v2vsim-cav {me}: ignoring {e}", file=sys.stderr)
             continue
+        frame = world.frame
         actor = world.actor(me)
         if actor is None:
             if seen:

@@ -9,26 +9,54 @@ Keys: v2vsim/<run>/<kind>/<sender> (v2vsim.comm.transport).
 
 Liveliness: each process declares a token v2vsim/<run>/alive/<role>.<id>; zenoh withdraws it
 when the process's session drops, SIGKILL included, which is how the others notice a dead agent
-within milliseconds instead of waiting for a timeout.
+within milliseconds instead of waiting for a timeout. A process that ends on its own (done,
+Ctrl-C, an error) first says `bye` with its exit code, so that a token that drops without a
+bye means the process died.
+
+Control kinds (v2vsim.comm.control: world, done, ack, start, static, vis, bye) are checked by
+the Bus itself: only the processes allowed to send a kind are heard, and with comm.auth on
+every control message is signed under the run key and verified on receipt. Invalid ones are
+dropped and counted (`control_rejections`), with one warning per kind on stderr. The V2V data
+kinds pass through untouched: the codec signs and checks those.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import signal
 import sys
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from typing import Any
 
 import zenoh
 
+from v2vsim.comm.codec import RejectedMessage
+from v2vsim.comm.control import (
+    CONTROL_KINDS,
+    DRIVER,
+    ControlPolicy,
+    ReplayGuard,
+    open_sealed,
+    process_id,
+    seal,
+)
 from v2vsim.comm.transport import TransportError, message_key, open_session, parse_key
 from v2vsim.config import ConfigError, Scenario, load_scenario
 
 START_TIMEOUT_S = 300.0  # agents import torch and build their models before they are ready
+DRIVER_GRACE_S = 1.0  # after the driver's token drops, how long its `bye` or `done` may still take to arrive
+DONE_GRACE_S = 5.0  # without comm.auth, an unverifiable `done` is believed after this long without a world
+
+
+def read_key(path: str | None) -> bytes | None:
+    """The run key of comm.auth.key_file (None: auth off)."""
+    return None if path is None else open(path, "rb").read().strip()
 
 
 @dataclass(frozen=True)
@@ -89,20 +117,38 @@ def agent_argv(args_scenario: str, overrides: Iterable[str], run_id: str, listen
 
 
 class Bus:
-    """A zenoh session scoped to one run: put/subscribe by (kind, sender), a queryable, liveliness."""
+    """A zenoh session scoped to one run: put/subscribe by (kind, sender), a queryable, liveliness.
 
-    def __init__(self, session: zenoh.Session, run_id: str, name: str) -> None:
+    key: the comm.auth run key; control kinds are then signed by put/serve and verified by
+    subscribe/fetch. policy: who may send each control kind (None: anyone, the old behaviour).
+    """
+
+    def __init__(self, session: zenoh.Session, run_id: str, name: str, *, key: bytes | None = None,
+                 policy: ControlPolicy | None = None) -> None:
         self.session = session
         self.run_id = run_id
         self.name = name
+        self.key = key
+        self.policy = policy
         self._pubs: dict[str, zenoh.Publisher] = {}
         self._keep: list[object] = []  # declared entities live as long as the bus
         self._alive: set[str] = set()
         self._ever_alive: set[str] = set()
         self._alive_cond = threading.Condition()
         self._lost_callbacks: list[Callable[[str], None]] = []
+        self._seq: Counter[str] = Counter()
+        self._lock = threading.Lock()  # sequence numbers, rejection counts, byes
+        self._rejected: Counter[tuple[str, str]] = Counter()
+        self._warned: set[str] = set()
+        self._byes: dict[str, dict[str, Any]] = {}
         self._keep.append(session.liveliness().declare_subscriber(
             f"v2vsim/{run_id}/alive/*", self._on_liveliness, history=True))
+        self._subscribe("bye", self._on_bye)
+
+    @property
+    def authenticated(self) -> bool:
+        """Whether control messages are signed and verified (comm.auth on)."""
+        return self.key is not None
 
     def ready(self) -> None:
         """Announce this process (models built, subscriptions declared): the driver waits for it."""
@@ -148,40 +194,134 @@ class Bus:
                     raise TimeoutError(f"agents never joined: {', '.join(sorted(names - self._ever_alive))}")
                 self._alive_cond.wait(min(left, 0.5))
 
+    # ---- control messages: signing, verification, counting ----------------------------------
+
+    def _seal(self, kind: str, data: bytes) -> bytes:
+        if kind not in CONTROL_KINDS or self.key is None:
+            return data
+        with self._lock:
+            seq = self._seq[kind]
+            self._seq[kind] += 1
+        return seal(self.key, self.run_id, kind, self.name, seq, data)
+
+    def _open(self, kind: str, sender: str, data: bytes, guard: ReplayGuard | None) -> tuple[str, bytes] | None:
+        """(process name, payload) of a message that arrived under key sender `sender`, or None (counted).
+
+        The process name is verified under comm.auth; without it, it is only the key's sender chunk."""
+        if kind not in CONTROL_KINDS:
+            return sender, data
+        try:
+            if self.key is None:
+                if self.policy is not None and not self.policy.allows_key_sender(kind, sender):
+                    raise RejectedMessage("unknown_sender", f"{kind} from {sender!r}")
+                return sender, data
+            opened = open_sealed(self.key, self.run_id, kind, sender, data, self.policy)
+            if guard is not None:
+                guard.check(kind, opened)
+            return opened.sender, opened.payload
+        except RejectedMessage as e:
+            self._reject(kind, sender, e)
+            return None
+
+    def _reject(self, kind: str, sender: str, e: RejectedMessage) -> None:
+        with self._lock:
+            self._rejected[(kind, e.reason)] += 1
+            first = kind not in self._warned
+            self._warned.add(kind)
+        if first:
+            print(f"v2vsim-{self.name}: dropped a {kind!r} control message under sender {sender!r} ({e}); "
+                  f"further invalid {kind!r} messages are only counted", file=sys.stderr, flush=True)
+
+    def control_rejections(self) -> dict[tuple[str, str], int]:
+        """(kind, reason) -> how many invalid control messages were dropped so far."""
+        with self._lock:
+            return dict(self._rejected)
+
+    def _on_bye(self, name: str, payload: bytes) -> None:
+        try:
+            doc = json.loads(payload)
+            if not isinstance(doc, dict):
+                return
+        except ValueError:
+            return
+        if self.key is None:  # `name` is only the key's sender chunk: take the name the payload gives
+            claimed = str(doc.get("name", ""))
+            if process_id(claimed) != name or (self.policy is not None and not self.policy.allows("bye", claimed)):
+                return
+            name = claimed
+        with self._lock:
+            self._byes[name] = doc
+        with self._alive_cond:
+            self._alive_cond.notify_all()
+
+    def farewell(self, who: str) -> dict[str, Any] | None:
+        """What process `who` said when it ended on its own ({'name', 'code', 'why'}), None if it did not."""
+        with self._lock:
+            return self._byes.get(who)
+
+    def driver_gone(self) -> bool:
+        """The driver joined and its liveliness token has dropped (ended or died)."""
+        return self.was_alive(DRIVER) and not self.is_alive(DRIVER)
+
+    def say_bye(self, code: int, why: str = "") -> None:
+        """Tell the run this process ends on its own (best effort: the session may be failing)."""
+        try:
+            self.put("bye", json.dumps({"name": self.name, "code": int(code), "why": why[:200]}).encode())
+        except Exception:  # a bye that cannot be sent is a death the others will notice
+            pass
+
+    # ---- pub/sub ---------------------------------------------------------------------------
+
     def put(self, kind: str, data: bytes) -> int:
-        key = message_key(self.run_id, kind, self.name.split(".")[-1])
+        """Publish on v2vsim/<run>/<kind>/<me> (control kinds signed under comm.auth); bytes sent."""
+        key = message_key(self.run_id, kind, process_id(self.name))
         pub = self._pubs.get(key)
         if pub is None:
             pub = self._pubs[key] = self.session.declare_publisher(
                 key, congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE)
+        data = self._seal(kind, data)
         pub.put(data)
         return len(data)
 
     def subscribe(self, kind: str, callback: Callable[[str, bytes], None]) -> None:
-        """callback(sender, payload) on zenoh's thread for every message of `kind`; keep it short."""
+        """callback(sender, payload) on zenoh's thread for every valid message of `kind`; keep it short.
+
+        Control kinds arrive verified and unwrapped; invalid ones never reach the callback."""
+        self._subscribe(kind, callback, by_name=False)
+
+    def _subscribe(self, kind: str, callback: Callable[[str, bytes], None], by_name: bool = True) -> None:
+        """subscribe(), with callback(process name, payload) when by_name (see `_open`)."""
+        guard = ReplayGuard()
 
         def on_sample(sample: zenoh.Sample) -> None:
             try:
                 _, _, sender = parse_key(str(sample.key_expr))
             except ValueError:
                 return
-            callback(sender, sample.payload.to_bytes())
+            opened = self._open(kind, sender, sample.payload.to_bytes(), guard)
+            if opened is not None:
+                callback(opened[0] if by_name else sender, opened[1])
 
         self._keep.append(self.session.declare_subscriber(f"v2vsim/{self.run_id}/{kind}/*", on_sample))
 
     def serve(self, kind: str, data: bytes) -> None:
         """Answer queries on v2vsim/<run>/<kind>/<me> with `data` (e.g. the static map)."""
-        key = message_key(self.run_id, kind, self.name.split(".")[-1])
-        self._keep.append(self.session.declare_queryable(key, lambda q: q.reply(key, data)))
+        key = message_key(self.run_id, kind, process_id(self.name))
+        sealed = self._seal(kind, data)
+        self._keep.append(self.session.declare_queryable(key, lambda q: q.reply(key, sealed)))
 
     def fetch(self, kind: str, sender: str, timeout_s: float) -> bytes:
-        """Query what another process serves, retrying until it answers or `timeout_s` passes."""
+        """Query what another process serves, retrying until a valid answer comes or `timeout_s` passes."""
         key = message_key(self.run_id, kind, sender)
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
-            for reply in self.session.get(key, timeout=5.0):
+            # every queryable's reply, not zenoh's pick of one: an impostor's must not hide the real one
+            for reply in self.session.get(key, target=zenoh.QueryTarget.ALL,
+                                          consolidation=zenoh.ConsolidationMode.NONE, timeout=5.0):
                 if reply.ok is not None:
-                    return reply.ok.payload.to_bytes()
+                    opened = self._open(kind, sender, reply.ok.payload.to_bytes(), None)
+                    if opened is not None:
+                        return opened[1]
             time.sleep(0.2)
         raise TimeoutError(f"no answer on {key} within {timeout_s:g} s")
 
@@ -217,23 +357,23 @@ def run_agent(args: AgentArgs, role: str, ident: str, body: Callable[[Bus], int]
     except TransportError as e:
         print(f"v2vsim-{role}: error: {e}", file=sys.stderr)
         return 2
-    bus = Bus(session, args.run_id, f"{role}.{ident}")
+    key = read_key(args.scenario.comm.auth.key_file)
+    bus = Bus(session, args.run_id, f"{role}.{ident}", key=key, policy=ControlPolicy.for_run(args.cavs, args.egos))
+    code, why = 1, "crashed"
     try:
-        return body(bus)
+        code, why = body(bus), "finished"
+        return code
     except Stop as stop:
-        return 128 + int(stop.args[0])  # the shell's convention for "ended by signal N"
+        code, why = 128 + int(stop.args[0]), f"stopped by signal {stop.args[0]}"
+        return code  # the shell's convention for "ended by signal N"
     except TimeoutError as e:
         print(f"v2vsim-{role} {ident}: error: {e}", file=sys.stderr)
+        code, why = 1, str(e)
         return 1
+    except BaseException as e:
+        why = f"{type(e).__name__}: {e}"
+        raise
     finally:
+        bus.say_bye(code, why)
         bus.close()
 
-
-def progress_line(who: str, done: int, total: int, t_start: float, every: int = 20) -> None:
-    """frames/s and ETA on stderr every `every` frames."""
-    if done % every and done != total:
-        return
-    dt = max(time.monotonic() - t_start, 1e-9)
-    fps = done / dt
-    eta = (total - done) / fps if fps > 0 else float("inf")
-    print(f"[{who}] frame {done}/{total}  {fps:.1f} frames/s  ETA {eta:.0f} s", file=sys.stderr, flush=True)

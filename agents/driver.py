@@ -2,7 +2,8 @@
 
 lockstep: frame k+1 is published only after every ego acknowledged frame k, so the run is
 deterministic for a seed and runs as fast as perception allows. realtime: frames go out at
-rate_hz on the wall clock whether or not anyone kept up.
+rate_hz on the wall clock whether or not anyone kept up. In both, the driver stops (exit 1) once
+every ego process is gone: nobody would fuse what it publishes.
 """
 
 from __future__ import annotations
@@ -12,7 +13,8 @@ import sys
 import threading
 import time
 
-from agents.common import START_TIMEOUT_S, AgentArgs, Bus, parse_agent_args, progress_line, run_agent
+from agents.common import START_TIMEOUT_S, AgentArgs, Bus, parse_agent_args, run_agent
+from agents.progress import report_progress
 from v2vsim.traffic import make_backend
 from v2vsim.world_io import static_to_bytes, world_to_bytes
 
@@ -25,12 +27,23 @@ def drive(args: AgentArgs, bus: Bus) -> int:
     ack_event = threading.Event()
 
     def on_ack(sender: str, payload: bytes) -> None:
+        # The Bus admits acks only from ego processes (signed under comm.auth); the ego is the key's
+        # sender, not what the payload claims, and an old (replayed) frame never moves an ack back.
+        if sender not in egos:
+            return
         try:
-            doc = json.loads(payload)
-            acks[str(doc["ego"])] = int(doc["frame"])
+            frame = int(json.loads(payload)["frame"])
         except (ValueError, KeyError, TypeError):
             return  # a malformed ack is ignored, never fatal
+        acks[sender] = max(acks.get(sender, -1), frame)
         ack_event.set()
+
+    def egos_gone(k: int) -> bool:
+        """Nobody fuses any more: publishing the rest of the run would be work for no one."""
+        if any(bus.is_alive(f"ego.{e}") for e in egos):
+            return False
+        print(f"v2vsim-driver: every ego process is gone at frame {k}; stopping", file=sys.stderr, flush=True)
+        return True
 
     backend = make_backend(sc)
     try:
@@ -41,8 +54,11 @@ def drive(args: AgentArgs, bus: Bus) -> int:
         expected = {f"cav.{c}" for c in args.cavs} | {f"ego.{e}" for e in egos}
         bus.wait_alive(expected, START_TIMEOUT_S)
         bus.put("start", json.dumps({"frames": frames, "wall_t0": time.time()}).encode())
+        report_progress("driver", 0, frames)
         t_start = time.monotonic()
         for k in range(frames):
+            if egos_gone(k):
+                return 1
             if k > 0:
                 world = backend.step()
             bus.put("world", world_to_bytes(world))
@@ -51,12 +67,9 @@ def drive(args: AgentArgs, bus: Bus) -> int:
                 time.sleep(max(0.0, next_tick - time.monotonic()))
             else:
                 while not all(acks.get(e, -1) >= k for e in egos if bus.is_alive(f"ego.{e}")):
-                    if not any(bus.is_alive(f"ego.{e}") for e in egos):
-                        print("driver: every ego process is gone; stopping", file=sys.stderr)
-                        return 1
                     ack_event.wait(0.5)
                     ack_event.clear()
-            progress_line("driver", k + 1, frames, t_start)
+            report_progress("driver", k + 1, frames)
         bus.put("done", json.dumps({"frames": frames}).encode())
     finally:
         backend.close()

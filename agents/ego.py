@@ -6,26 +6,46 @@ recording when the run ends, is interrupted, or loses agents.
 lockstep: frame k is fused once every live CAV's frame-k messages are in (a CAV that dies is
 noticed through zenoh liveliness within milliseconds, or after HANG_TIMEOUT_S if it hangs).
 realtime: frame k is fused when its world arrives, with whatever has arrived by then.
+
+Every received V2V message goes through one decode path (v2vsim.comm.wire_spec.EgoDecoder, with
+the scenario's exact shapes and bounds); a rejected one is counted, never fatal. metrics.json
+`status` says how the run ended: complete, ended early (the driver finished or stopped), driver
+died (its liveliness token dropped without a bye: the ego stops within seconds), interrupted,
+or crashed at frame k (the exception is re-raised, exit 1).
 """
 
 from __future__ import annotations
 
 import json
+import signal
 import struct
 import sys
 import threading
 import time
 from collections import defaultdict
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from agents.cav import read_key
-from agents.common import START_TIMEOUT_S, AgentArgs, Bus, Stop, parse_agent_args, progress_line, run_agent
-from v2vsim.comm.codec import RejectedMessage, decode
+from agents.common import (
+    DONE_GRACE_S,
+    DRIVER,
+    DRIVER_GRACE_S,
+    START_TIMEOUT_S,
+    AgentArgs,
+    Bus,
+    Stop,
+    parse_agent_args,
+    read_key,
+    run_agent,
+)
+from agents.progress import report_progress
 from v2vsim.comm.inbox import Inbox, distance
 from v2vsim.comm.stats import CommStats
+from v2vsim.comm.wire_spec import EgoDecoder, ego_wire_spec
 from v2vsim.evaluate import box_iou, fuse_and_score
 from v2vsim.geometry import Pose, relative_pose
 from v2vsim.gt import bev_ground_truth, gt_boxes
@@ -46,19 +66,33 @@ from v2vsim.world import WorldState
 from v2vsim.world_io import static_from_bytes, world_from_bytes
 
 HANG_TIMEOUT_S = 60.0  # a live CAV that sends nothing for this long is treated as lost
+MAX_VIS_BYTES = 1 << 20  # the visible-ids side channel: a few hundred ids
 
 
 class Mailbox:
-    """Raw messages by (kind, frame, sender), filled on zenoh's thread, read on the main thread."""
+    """Raw messages by (kind, frame, sender), filled on zenoh's thread, read on the main thread.
 
-    def __init__(self) -> None:
+    limits: kind -> the longest message that could be accepted; longer ones are not kept, only
+    counted (`rejected`), so a flood of oversized messages cannot pile up unread."""
+
+    def __init__(self, limits: dict[str, int] | None = None) -> None:
         self.cond = threading.Condition()
         self.raw: dict[tuple[str, int], list[tuple[str, bytes]]] = defaultdict(list)  # (sender key, bytes)
         self.unframed: list[tuple[str, str, bytes]] = []  # could not even read a frame number
+        self.rejected: list[tuple[str, str]] = []  # (kind, reason) decided on arrival
         self.worlds: dict[int, bytes] = {}
         self.done = False
+        self.done_at = 0.0  # time.monotonic() of the first done
+        self.last_world = 0.0  # time.monotonic() of the latest world
+        self.limits = dict(limits or {})
 
     def put(self, kind: str, sender: str, data: bytes) -> None:
+        limit = self.limits.get(kind, MAX_VIS_BYTES if kind == "vis" else 0)
+        if limit and len(data) > limit:
+            if kind != "vis":
+                with self.cond:
+                    self.rejected.append((kind, "size_mismatch"))
+            return
         frame = _peek_frame(kind, data)
         with self.cond:
             if frame is None:
@@ -96,10 +130,9 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
     assets = build_map_assets(static)
     c, f = encoder.out_channels, encoder.out_cells
     compressor = build_compressor(sc, c)
-    shapes = {"features": {"features": (c // sc.comm.channel_compression, f, f)}, "points": {"points": (None, 4)},
-              "outputs": {"outputs": (3, 8 * f, 8 * f), "outputs.boxes": (None, 6)}}  # decoder: 8x upsampling
+    decoder = EgoDecoder(ego_wire_spec(sc, c, f), args.run_id, frozenset(args.cavs), key)
 
-    box = Mailbox()
+    box = Mailbox({kind: decoder.max_bytes(kind) for kind in kinds})
     for kind in [*kinds, "vis"]:
         bus.subscribe(kind, lambda sender, data, kind=kind: box.put(kind, sender, data))
     bus.subscribe("world", lambda sender, data: _put_world(box, data))
@@ -123,13 +156,25 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
     status = "complete"
     realtime = sc.transport.clock == "realtime"
     k = -1
+    working = 0  # the frame being waited for or worked on (for a crash's status)
+    code = 0
     try:
         while k + 1 < args.frames:
-            got = _wait_world(box, k + 1, realtime)
-            if got is None:
-                status = f"ended early: the driver finished after frame {k}" if not realtime else status
+            working = k + 1
+            got = _wait_world(box, bus, k + 1, realtime)
+            if got == "done":
+                status = f"ended early: the driver finished {_after(k)}" if not realtime else status
+                break
+            if got == "died":
+                status, code = f"driver died {_after(k)}", 1
+                print(f"v2vsim-ego {me}: the driver died {_after(k)}; writing results and stopping",
+                      file=sys.stderr, flush=True)
+                break
+            if isinstance(got, str):
+                status = f"ended early: the driver stopped {_after(k)} ({got})"
                 break
             k, data = got
+            working = k
             world = world_from_bytes(data, static)
             ego_actor = world.actor(me)
             if ego_actor is None:
@@ -145,7 +190,7 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
                     lost[cav] = k
             for cav in lost:
                 stats.record_lost_agent(cav)
-            inp, visible = _collect(box, k, world, me, kinds, inboxes, ego_poses, key, args, shapes)
+            inp, visible = _collect(box, k, world, me, kinds, inboxes, ego_poses, decoder, args)
             inp.features = {s: decompress(compressor, v) for s, v in inp.features.items()}
             gt = bev_ground_truth(world, me, sc.bev, visible, assets=assets)
             boxes_gt, ids = gt_boxes(world, me, sc.bev)
@@ -161,43 +206,82 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
             summary.neighbours.append(near)
             if not realtime:
                 bus.put("ack", json.dumps({"ego": me, "frame": k}).encode())
-            progress_line(f"ego {me}", k + 1, args.frames, t_start)
+            report_progress(f"ego.{me}", k + 1, args.frames, delivered=stats.delivered, dropped=stats.dropped,
+                            out_of_range=stats.out_of_range)
     except Stop:
-        status = f"interrupted after {frames_done} frames"
+        # The runner stops everyone when the driver dies: say so rather than "interrupted".
+        died = bus.driver_gone() and bus.farewell(DRIVER) is None
+        status = f"driver died {_after(k)}" if died else f"interrupted after {frames_done} frames"
+        raise
+    except Exception as e:
+        status = f"crashed at frame {working}: {type(e).__name__}: {' '.join(str(e).split())[:300]}"
         raise
     finally:
-        _reject_leftovers(box, kinds, inboxes, key, args)
-        summary.frames = frames_done
-        summary.sim_s = (k + 1) / sc.rate_hz
-        summary.status = status
-        summary.wall_s = time.monotonic() - t_start
-        summary.lost_agents = dict(lost)
-        write_outputs(out_dir, summary, scores, stats, {kind: ib.stats for kind, ib in inboxes.items()}, box_iou)
-        if recorder is not None:
-            recorder.close()
-    return 0
+        with _signals_deferred():  # a second Ctrl-C or the runner's SIGINT must not cut the files short
+            _reject_leftovers(box, kinds, inboxes, decoder)
+            summary.frames = frames_done
+            summary.sim_s = (k + 1) / sc.rate_hz
+            summary.status = status
+            summary.wall_s = time.monotonic() - t_start
+            summary.lost_agents = dict(lost)
+            by_kind = {kind: ib.stats for kind, ib in inboxes.items()}
+            by_kind["control"] = _control_rejections(bus, stats)
+            write_outputs(out_dir, summary, scores, stats, by_kind, box_iou)
+            if recorder is not None:
+                recorder.close()
+    return code
 
 
-def _reject_leftovers(box: Mailbox, kinds: list[str], inboxes: dict[str, Inbox], key: bytes | None,
-                      args: AgentArgs) -> None:
+def _after(k: int) -> str:
+    return f"after frame {k}" if k >= 0 else "before frame 0"
+
+
+@contextmanager
+def _signals_deferred() -> Iterator[None]:
+    """Ignore SIGINT/SIGTERM inside (main thread only; elsewhere a no-op), then restore the handlers."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _control_rejections(bus: Bus, total: CommStats) -> CommStats:
+    """The control messages (done, world, vis, ...) the bus dropped, also counted in comm.rejected."""
+    control = CommStats()
+    for (_kind, reason), n in bus.control_rejections().items():
+        control.rejected_reasons[reason] += n
+        total.rejected_reasons[reason] += n
+    return control
+
+
+def _reject_leftovers(box: Mailbox, kinds: list[str], inboxes: dict[str, Inbox], decoder: EgoDecoder) -> None:
     """Messages never fused (e.g. claiming a frame the run never reached) still get validated and counted."""
     with box.cond:
-        leftovers = [(kind, data) for (kind, _f), table in box.raw.items() if kind in kinds for _s, data in table]
-        leftovers += [(kind, data) for kind, _s, data in box.unframed if kind in kinds]
+        leftovers = [(kind, s, data) for (kind, _f), table in box.raw.items() if kind in kinds for s, data in table]
+        leftovers += [(kind, s, data) for kind, s, data in box.unframed if kind in kinds]
+        early, box.rejected = box.rejected, []
         box.raw.clear()
         box.unframed.clear()
-    for kind, data in leftovers:
-        try:
-            decode(data, key=key, known_senders=args.cavs, run_id=args.run_id)
-        except RejectedMessage as e:
-            _count_rejected(inboxes, kind, e.reason)
+    for kind, reason in early:
+        _count_rejected(inboxes, kind, reason)
+    for kind, sender, data in leftovers:
+        decoder.receive(kind, data, sender, _stats_for(inboxes, kind))
+
+
+def _stats_for(inboxes: dict[str, Inbox], kind: str) -> list[CommStats]:
+    """Where a rejection of `kind` is counted: per kind, and every kind also in comm.rejected (the
+    features inbox's stats)."""
+    return [inboxes[kind].stats] + ([inboxes["features"].stats] if kind != "features" else [])
 
 
 def _count_rejected(inboxes: dict[str, Inbox], kind: str, reason: str) -> None:
-    """Per kind, and every kind also in comm.rejected (the features inbox's stats)."""
-    inboxes[kind].stats.record_rejected(reason)
-    if kind != "features":
-        inboxes["features"].stats.record_rejected(reason)
+    for s in _stats_for(inboxes, kind):
+        s.record_rejected(reason)
 
 
 def _bytes_for(method: str, inboxes: dict[str, Inbox]) -> int:
@@ -212,12 +296,14 @@ def _put_world(box: Mailbox, data: bytes) -> None:
         return
     with box.cond:
         box.worlds[frame] = data
+        box.last_world = time.monotonic()
         box.cond.notify_all()
 
 
 def _set_done(box: Mailbox) -> None:
     with box.cond:
-        box.done = True
+        if not box.done:
+            box.done, box.done_at = True, time.monotonic()
         box.cond.notify_all()
 
 
@@ -226,8 +312,11 @@ def _notify(box: Mailbox) -> None:
         box.cond.notify_all()
 
 
-def _wait_world(box: Mailbox, k: int, realtime: bool) -> tuple[int, bytes] | None:
-    """World k (lockstep), or the newest world from k on (realtime: frames we fell behind on are skipped)."""
+def _wait_world(box: Mailbox, bus: Bus, k: int, realtime: bool) -> tuple[int, bytes] | str:
+    """World k (lockstep), or the newest world from k on (realtime: frames we fell behind on are skipped),
+    or why none will come: "done" (the driver finished), "died" (its token dropped without a bye or
+    done), or the reason it gave in its bye (it stopped)."""
+    gone_at = None
     with box.cond:
         while True:
             ready = [f for f in box.worlds if f >= k]
@@ -237,9 +326,20 @@ def _wait_world(box: Mailbox, k: int, realtime: bool) -> tuple[int, bytes] | Non
                 for old in [x for x in box.worlds if x <= f]:
                     del box.worlds[old]
                 return f, data
-            if box.done:
-                return None
-            box.cond.wait(0.5)
+            now = time.monotonic()
+            gone = bus.driver_gone()
+            # A verified done is the driver's; without comm.auth anyone could have sent it, so it is
+            # believed once the driver is gone too, or when no world came for DONE_GRACE_S since.
+            if box.done and (bus.authenticated or gone or now - max(box.done_at, box.last_world) > DONE_GRACE_S):
+                return "done"
+            if gone:
+                gone_at = gone_at or now
+                bye = bus.farewell(DRIVER)
+                if bye is not None:
+                    return f"exit {bye.get('code')}: {bye.get('why', '')}"
+                if now - gone_at > DRIVER_GRACE_S:
+                    return "died"
+            box.cond.wait(0.2 if gone or box.done else 0.5)
 
 
 def _wait_messages(box: Mailbox, bus: Bus, k: int, present: list[str], kinds: list[str],
@@ -266,8 +366,7 @@ def _wait_messages(box: Mailbox, bus: Bus, k: int, present: list[str], kinds: li
 
 
 def _collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str], inboxes: dict[str, Inbox],
-             ego_poses: dict[int, Pose], key: bytes | None, args: AgentArgs,
-             shapes: dict[str, dict]) -> tuple[FusionInputs, set[str]]:
+             ego_poses: dict[int, Pose], decoder: EgoDecoder, args: AgentArgs) -> tuple[FusionInputs, set[str]]:
     """Decode frame k's messages, pass them through the channel, and gather what is fusable now."""
     realtime = args.scenario.transport.clock == "realtime"
     now = world.time
@@ -280,9 +379,12 @@ def _collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str],
                     raw[kind] += table
                 del box.raw[(kind, f)]
         unframed, box.unframed = box.unframed, []
-    for kind, _sender, _data in unframed:
+        early, box.rejected = box.rejected, []
+    for kind, reason in early:
+        _count_rejected(inboxes, kind, reason)
+    for kind, sender, data in unframed:
         if kind in kinds:
-            _count_rejected(inboxes, kind, "truncated")
+            decoder.receive(kind, data, sender, _stats_for(inboxes, kind))  # too short to be anything: counted
     visible: set[str] = set()
     for _sender, data in raw["vis"]:
         try:
@@ -290,11 +392,9 @@ def _collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str],
         except (ValueError, KeyError, TypeError):
             pass  # ground-truth side channel between our own processes, not a V2V message
     for kind in kinds:
-        for _sender, data in raw[kind]:
-            try:
-                msg = decode(data, key=key, known_senders=args.cavs, expected=shapes[kind], run_id=args.run_id)
-            except RejectedMessage as e:
-                _count_rejected(inboxes, kind, e.reason)
+        for sender, data in raw[kind]:
+            msg = decoder.receive(kind, data, sender, _stats_for(inboxes, kind))
+            if msg is None:
                 continue
             ego_then = ego_poses.get(msg.frame, ego_poses[k])
             send_time = now if realtime else msg.capture_time

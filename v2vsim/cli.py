@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 from pathlib import Path
 
-from v2vsim.config import ConfigError, load_scenario
+from v2vsim.config import ConfigError, check_output_dir, load_scenario
+
+_RUN_ID = re.compile(r"[A-Za-z0-9_.-]{1,64}")  # a zenoh key chunk (v2vsim/<run>/<kind>/<sender>)
 
 
 def _scenario_args(p: argparse.ArgumentParser) -> None:
@@ -21,10 +24,16 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.methods:
         overrides.append(f"perception.methods=[{args.methods}]")
     scenario = load_scenario(args.scenario, overrides)  # validate before the heavy imports
+    if args.frames is not None and args.frames < 1:  # 0 used to mean "the whole duration", -1 "nothing"
+        raise ConfigError(f"--frames {args.frames}: expected a number of frames >= 1 "
+                          f"(without --frames: duration_s x rate_hz = {scenario.frames})")
+    if args.run_id is not None and not _RUN_ID.fullmatch(args.run_id):
+        raise ConfigError(f"--run-id {args.run_id!r}: allowed: letters, digits, '_', '-' and '.'")
+    out = Path(args.out) if args.out else Path(scenario.output.dir)
+    check_output_dir(out, "--out" if args.out else f"{scenario.source}: output.dir")
+    remote = tuple(c for c in (args.remote_cavs or "").split(",") if c)
     from v2vsim.runner import run
 
-    out = Path(args.out) if args.out else Path(scenario.output.dir)
-    remote = tuple(c for c in (args.remote_cavs or "").split(",") if c)
     return run(scenario, out, frames=args.frames, remote_cavs=remote, run_id=args.run_id)
 
 
@@ -133,7 +142,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("run", help="run the co-simulation: report.md, metrics.json, recording.rrd, plots")
     _scenario_args(p)
-    p.add_argument("--frames", type=int, default=None, help="stop after N frames (default: duration_s * rate_hz)")
+    p.add_argument("--frames", type=int, default=None, help="stop after N >= 1 frames (default: duration_s * rate_hz)")
     p.add_argument("--out", default=None, help="output directory (default: output.dir)")
     p.add_argument("--methods", default=None, help="comma-separated fusion methods, e.g. none,cobevt")
     p.add_argument("--remote-cavs", default=None, help="CAV ids started on other hosts with `v2vsim agent`")

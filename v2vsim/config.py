@@ -10,6 +10,9 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import math
+import re
+import tempfile
 import types
 import typing
 from dataclasses import dataclass, field
@@ -18,6 +21,7 @@ from typing import Any, Literal
 
 import yaml
 
+SEED_MAX = 2**31 - 1  # SUMO (libsumo --seed) takes a signed 32-bit seed
 METHODS = ("none", "late", "early", "attfuse", "fcooper", "v2vnet", "disconet", "cobevt")
 ENCODERS_BY_MODALITY = {"lidar": ("pointpillars",), "camera": ("sinbevt", "lara")}
 
@@ -196,7 +200,7 @@ class OutputConfig:
 @dataclass(frozen=True)
 class Scenario:
     name: str = "scenario"
-    seed: int = _f(0, ">= 0", _nonneg)
+    seed: int = _f(0, f"0..{SEED_MAX}", lambda v: 0 <= v <= SEED_MAX)
     duration_s: float = _f(20.0, "> 0", _pos)
     rate_hz: float = _f(10.0, "> 0", _pos)
     traffic: TrafficConfig = field(default_factory=TrafficConfig)
@@ -291,7 +295,13 @@ class _Loader:
         if tp is float:
             if isinstance(raw, bool) or not isinstance(raw, (int, float)):
                 self.fail(key, f"got {raw!r}; expected a number")
-            return float(raw)
+            try:
+                value = float(raw)
+            except OverflowError:  # an integer beyond any float
+                value = math.inf
+            if not math.isfinite(value):  # .inf/.nan pass every range check and break frame counts later
+                self.fail(key, f"got {raw!r}; expected a finite number")
+            return value
         if tp is str:
             if not isinstance(raw, (str, int, float)) or isinstance(raw, bool):
                 self.fail(key, f"got {raw!r}; expected a string")
@@ -334,6 +344,41 @@ class _Loader:
         return str(path.resolve())
 
 
+class _StrictLoader(yaml.SafeLoader):
+    """SafeLoader that refuses a key given twice in one mapping (PyYAML silently keeps the last,
+    so a scenario would run with a value its author did not mean)."""
+
+
+def _construct_mapping(loader: _StrictLoader, node: yaml.MappingNode, deep: bool = False) -> dict:
+    seen: dict[Any, int] = {}  # explicit keys only: one may override a key merged in with `<<`
+    for key_node, _ in node.value:
+        if key_node.tag == "tag:yaml.org,2002:merge":
+            continue
+        key = loader.construct_object(key_node, deep=deep)
+        try:
+            line = seen.get(key)
+        except TypeError:  # an unhashable key: construct_mapping reports it
+            break
+        if line is not None:
+            raise yaml.constructor.ConstructorError(
+                None, None, f"duplicate key {key!r} (first at line {line + 1})", key_node.start_mark)
+        seen[key] = key_node.start_mark.line
+    return yaml.SafeLoader.construct_mapping(loader, node, deep=deep)
+
+
+_StrictLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
+
+
+def _yaml_load(text: str) -> Any:
+    return yaml.load(text, Loader=_StrictLoader)  # a SafeLoader subclass: no arbitrary objects
+
+
+def _yaml_problem(e: yaml.YAMLError) -> str:
+    """What PyYAML says is wrong, on one line (a ReaderError has no `problem`, and str() spans lines)."""
+    problem = getattr(e, "problem", None) or getattr(e, "reason", None) or str(e)
+    return " ".join(str(problem).split())
+
+
 def parse_override(text: str) -> tuple[list[str], Any]:
     """'comm.drop.p=0.3' -> (['comm', 'drop', 'p'], 0.3); the value is parsed as a YAML scalar."""
     if "=" not in text:
@@ -343,9 +388,9 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     if not key or any(not part for part in key.split(".")):
         raise ConfigError(f"--set {text}: bad key path {key!r}")
     try:
-        value = yaml.safe_load(val) if val.strip() else None
+        value = _yaml_load(val) if val.strip() else None
     except yaml.YAMLError as e:
-        raise ConfigError(f"--set {text}: value is not valid YAML ({e.problem})") from None
+        raise ConfigError(f"--set {text}: value is not valid YAML ({_yaml_problem(e)})") from None
     return key.split("."), value
 
 
@@ -371,11 +416,18 @@ def load_scenario(path: str | Path, overrides: typing.Sequence[str] = ()) -> Sce
     if not path.is_file():
         raise ConfigError(f"{path}: scenario file not found")
     try:
-        raw = yaml.safe_load(path.read_text())
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{path}: not a text (UTF-8) file: byte {e.start} is 0x{e.object[e.start]:02x}; "
+                          "a scenario is a YAML file") from None
+    except OSError as e:
+        raise ConfigError(f"{path}: cannot read the scenario file: {e.strerror or e}") from None
+    try:
+        raw = _yaml_load(text)
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        raise ConfigError(f"{path}: not valid YAML{where}: {getattr(e, 'problem', e)}") from None
+        raise ConfigError(f"{path}: not valid YAML{where}: {_yaml_problem(e)}") from None
     if raw is None:
         raw = {}
     if not isinstance(raw, dict):
@@ -408,3 +460,66 @@ def _check_cross_fields(sc: Scenario, loader: _Loader) -> None:
         loader.fail("cavs.ego", "an empty list; allowed: 'first', 'all' or a list of CAV ids")
     if sc.comm.drop.model == "gilbert_elliott" and sc.comm.drop.p_bg == 0 and sc.comm.drop.p_gb > 0:
         loader.fail("comm.drop.p_bg", "0 with p_gb > 0 never leaves the bad state; allowed: 0 < p_bg <= 1")
+    if not math.isfinite(sc.duration_s * sc.rate_hz):
+        loader.fail("duration_s", f"{sc.duration_s:g} s at rate_hz {sc.rate_hz:g} is more frames than can be counted")
+    _check_egos(sc, loader)
+    _check_key_file(sc, loader)
+    for name in ("listen", "connect"):
+        for i, ep in enumerate(getattr(sc.transport, name)):
+            _check_endpoint(ep, f"transport.{name}[{i}]", loader)
+
+
+def _check_egos(sc: Scenario, loader: _Loader) -> None:
+    """An ego id that is no CAV of the run would leave the run without an ego (nothing fused, no report);
+    one listed twice would start two processes with the same name."""
+    if not isinstance(sc.cavs.ego, tuple):
+        return
+    ids = [f"cav{i}" for i in range(sc.cavs.count)]  # v2vsim.traffic.base.cav_id
+    allowed = ", ".join(ids) if len(ids) <= 4 else f"{ids[0]}..{ids[-1]}"
+    for i, ego in enumerate(sc.cavs.ego):
+        if ego not in ids:
+            loader.fail(f"cavs.ego[{i}]", f"{ego!r} is not a CAV of this run (cavs.count is {sc.cavs.count}); "
+                        f"allowed: {allowed}")
+        if ego in sc.cavs.ego[:i]:
+            loader.fail(f"cavs.ego[{i}]", f"{ego!r} is listed twice; each ego once")
+
+
+def _check_key_file(sc: Scenario, loader: _Loader) -> None:
+    """An empty key would turn signing on with a key anyone can sign with: refuse it here, in one line."""
+    path = sc.comm.auth.key_file
+    if path is None:
+        return
+    try:
+        key = Path(path).read_bytes()
+    except OSError as e:
+        loader.fail("comm.auth.key_file", f"cannot read {path}: {e.strerror or e}")
+    if not key.strip():  # the agents strip the key (agents/cav.py read_key)
+        loader.fail("comm.auth.key_file", f"{path} is empty or only whitespace; allowed: a file holding a secret key")
+
+
+_ENDPOINT = re.compile(r"(?P<proto>[a-z][a-z0-9-]*)/(?P<addr>[^?#]+)(?:\?[^#]*)?(?:#.*)?")
+
+
+def _check_endpoint(ep: str, key: str, loader: _Loader) -> None:
+    """PROTO/HOST:PORT with a port zenoh and the OS accept (a bad one would otherwise surface as a
+    traceback or a baffling zenoh error in a child process)."""
+    m = _ENDPOINT.fullmatch(ep)
+    if not m:
+        loader.fail(key, f"got {ep!r}; allowed: a zenoh endpoint such as tcp/127.0.0.1:7447")
+    if m.group("proto") in ("tcp", "udp", "tls", "quic", "ws"):
+        host, sep, port = m.group("addr").rpartition(":")
+        if not sep or not host or not port.isdigit() or not 1 <= int(port) <= 65535:
+            loader.fail(key, f"got {ep!r}; allowed: {m.group('proto')}/HOST:PORT with a port 1..65535")
+
+
+def check_output_dir(path: Path, what: str) -> None:
+    """Create `path` and prove a file can be written there, so that a bad --out or output.dir fails
+    in one line before any process starts rather than in the ego at the end of the run."""
+    if path.exists() and not path.is_dir():
+        raise ConfigError(f"{what} {path}: is a file, not a directory")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=path, prefix=".v2vsim-write-check-"):
+            pass
+    except OSError as e:
+        raise ConfigError(f"{what} {path}: cannot write there: {(e.strerror or str(e)).lower()}") from None

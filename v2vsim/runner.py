@@ -1,15 +1,26 @@
 """`v2vsim run`: start the simulator driver, one perception agent per CAV and the ego fusion
-process(es), watch them, and stop them all cleanly on Ctrl-C.
+process(es), watch them, show one progress line for the run, and stop them all cleanly on Ctrl-C.
 
 Results are written by the ego process (metrics.json, report.md, plots, recording.rrd) when it
 finishes, is interrupted, or carries on without lost agents. The runner only orchestrates:
 a CAV that dies is the ego's business (it fuses the others); a driver or ego that dies ends
 the run with an error.
+
+Children: each runs in its own process group (a terminal's Ctrl-C reaches the runner only, which
+stops them in order) and, on Linux, gets SIGTERM when the runner dies (PR_SET_PDEATHSIG), so a
+SIGKILLed runner leaves no orphans. Their stderr comes through the runner: progress records feed
+the one display (agents/progress.py), every other line is passed on as it is.
+
+Ports (peer mode): the runner picks one free loopback port per process; a child binds it seconds
+later, after importing torch, and another program may take it meanwhile. A child that cannot
+listen on a port the runner picked is a race, not a user error: the runner picks new ports and
+restarts every process (PORT_ATTEMPTS in all). The user's own transport.listen stays a clean exit 2.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import dataclasses
 import os
 import re
@@ -17,24 +28,53 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 import uuid
+from collections.abc import Callable
 from pathlib import Path
 
 from agents.common import agent_argv
-from v2vsim.comm.transport import TransportError, free_port, loopback_endpoint, open_session
-from v2vsim.config import Scenario
+from agents.progress import ENV as PROGRESS_ENV
+from agents.progress import ProgressDisplay, parse_record
+from v2vsim.comm.transport import TransportError, free_ports, loopback_endpoint, open_session
+from v2vsim.config import ConfigError, Scenario, check_output_dir
 from v2vsim.perception import check_scenario
 from v2vsim.sensing import ego_ids
 from v2vsim.traffic.base import cav_id
 
 STOP_GRACE_S = 5.0  # after SIGINT, children get this long to write their files before SIGKILL
+EGO_NOTICE_S = 3.0  # after the driver dies mid-run, the egos get this long to notice it and say so themselves
+PORT_ATTEMPTS = 3  # plans of ports tried when another program takes a port the runner picked
+PORT_RACE_EXIT = 75  # EX_TEMPFAIL: an agent may exit with it when it cannot listen on its --listen port
+PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+
+
+class PortRace(Exception):
+    """A child could not listen on a port the runner picked for it: another program took it."""
+
+    def __init__(self, child: str, endpoint: str) -> None:
+        super().__init__(f"{child} could not listen on {endpoint}")
+        self.child = child
+        self.endpoint = endpoint
 
 
 @dataclasses.dataclass
 class Child:
     name: str
-    proc: subprocess.Popen
+    proc: subprocess.Popen[bytes]
+    endpoint: str = ""  # its listen endpoint ("" in client mode)
+    picked: bool = False  # the runner picked `endpoint` (not the user's transport.listen)
+    port_taken: bool = False  # it said its listen address is in use
+    quiet: bool = False  # being killed for a restart: its output is of no interest
+    reader: threading.Thread | None = None
+
+    def exited(self) -> int | None:
+        """Its exit code once it has exited and its last stderr lines (the reason) are through."""
+        rc = self.proc.poll()
+        if rc is not None and self.reader is not None:
+            self.reader.join(timeout=2.0)
+        return rc
 
 
 def _check_listen(endpoints: tuple[str, ...]) -> None:
@@ -48,16 +88,18 @@ def _check_listen(endpoints: tuple[str, ...]) -> None:
         with socket.socket(family, socket.SOCK_STREAM) as s:
             try:
                 s.bind((host, port))
+            except OverflowError:
+                raise TransportError(f"transport.listen: {ep}: port {port} is out of range 1..65535") from None
             except OSError as e:
-                raise TransportError(f"zenoh: cannot listen on {ep}: {e.strerror.lower()} "
+                raise TransportError(f"zenoh: cannot listen on {ep}: {(e.strerror or str(e)).lower()} "
                                      "(pick another port in transport.listen)") from None
 
 
 def plan_endpoints(sc: Scenario, names: list[str]) -> dict[str, str]:
-    """Peer mode: one listen endpoint per process (the driver takes transport.listen if set)."""
+    """Peer mode: one listen endpoint per process, all distinct (the driver takes transport.listen if set)."""
     if sc.transport.mode == "client":
         return {n: "" for n in names}
-    out = {n: loopback_endpoint(free_port()) for n in names}
+    out = {n: loopback_endpoint(p) for n, p in zip(names, free_ports(len(names)), strict=True)}
     if sc.transport.listen:
         out[names[0]] = sc.transport.listen[0]
     return out
@@ -65,12 +107,15 @@ def plan_endpoints(sc: Scenario, names: list[str]) -> dict[str, str]:
 
 def run(sc: Scenario, out: Path, frames: int | None = None, remote_cavs: tuple[str, ...] = (),
         run_id: str | None = None) -> int:
+    """Run the co-simulation; the exit code for `v2vsim run` (ConfigError for a bad --frames / --out)."""
+    if frames is not None and frames < 1:
+        raise ConfigError(f"--frames {frames}: expected a number of frames >= 1")
     frames = frames or sc.frames
     run_id = run_id or uuid.uuid4().hex[:8]
     cavs = [cav_id(i) for i in range(sc.cavs.count)]
     egos = ego_ids(sc, cavs)
     check_scenario(sc)
-    out.mkdir(parents=True, exist_ok=True)
+    check_output_dir(out, "--out")
     try:
         if sc.transport.mode == "client":  # the router(s) must be reachable before anything starts
             open_session(dataclasses.replace(sc.transport, listen=())).close()
@@ -80,7 +125,6 @@ def run(sc: Scenario, out: Path, frames: int | None = None, remote_cavs: tuple[s
         print(f"v2vsim: error: {e}", file=sys.stderr)
         return 2
     procs = ["driver.main"] + [f"cav.{c}" for c in cavs if c not in remote_cavs] + [f"ego.{e}" for e in egos]
-    endpoints = plan_endpoints(sc, procs)
     overrides = _overrides_for_children(sc)
     print(f"v2vsim: run {run_id}: {len(cavs)} CAVs, ego {', '.join(egos)}, {frames} frames, "
           f"methods {', '.join(sc.perception.methods)} -> {out}", file=sys.stderr)
@@ -90,30 +134,113 @@ def run(sc: Scenario, out: Path, frames: int | None = None, remote_cavs: tuple[s
             print(f"  v2vsim agent {sc.source} --cav {c} --run-id {run_id} --cavs {','.join(cavs)} "
                   f"--egos {','.join(egos)} --frames {frames} " + " ".join(f"--set {o}" for o in overrides),
                   file=sys.stderr)
+    display = ProgressDisplay(frames, sc.rate_hz, [f"ego.{e}" for e in egos])
     children: list[Child] = []
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    interrupted = False
+    code = 1
+    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
+    try:
+        for attempt in range(1, PORT_ATTEMPTS + 1):
+            endpoints = plan_endpoints(sc, procs)
+            picked = {n for n, ep in endpoints.items() if ep and ep not in sc.transport.listen}
+            children = []
+            _start(children, sc, procs, endpoints, picked, overrides, run_id, cavs, egos, frames, out, display)
+            try:
+                code = _watch(children, display)
+                break
+            except PortRace as race:
+                _kill_quietly(children)
+                display.reset()
+                if attempt == PORT_ATTEMPTS:
+                    display.message(f"v2vsim: error: {race}: another program took the port each time; "
+                                    f"gave up after {PORT_ATTEMPTS} sets of free ports")
+                    code = 1
+                    break
+                display.message(f"v2vsim: {race}: another program took the port after it was picked; "
+                                f"picking new ports and restarting every process (attempt {attempt + 1} "
+                                f"of {PORT_ATTEMPTS})")
+    except KeyboardInterrupt:
+        interrupted = True
+        code = 130
+        display.message("v2vsim: interrupted; stopping every process (partial results are written)")
+    finally:
+        _stop_all(children)
+        display.close()
+        signal.signal(signal.SIGTERM, previous)
+    if not interrupted and code == 0:
+        report = out / "report.md"
+        if report.is_file():
+            print(f"v2vsim: done: {report}", file=sys.stderr)
+        else:
+            print(f"v2vsim: error: the run ended but no report was written to {out}", file=sys.stderr)
+            code = 1
+    return code
+
+
+def _start(children: list[Child], sc: Scenario, procs: list[str], endpoints: dict[str, str], picked: set[str],
+           overrides: list[str], run_id: str, cavs: list[str], egos: list[str], frames: int, out: Path,
+           display: ProgressDisplay) -> None:
+    """Start every process (appending to `children` as it goes, so that Ctrl-C stops those already up),
+    then one stderr reader per child (threads only after the forks: see `_child_setup`)."""
+    env = dict(os.environ, PYTHONUNBUFFERED="1", **{PROGRESS_ENV: "records"})
+    setup = _child_setup(os.getpid())
     for name in procs:
         role, ident = name.split(".", 1)
         module = {"driver": "agents.driver", "cav": "agents.cav", "ego": "agents.ego"}[role]
         argv = agent_argv(sc.source, overrides, run_id, endpoints[name],
                           [ep for n, ep in endpoints.items() if n != name and ep], cavs, egos, frames,
                           cav="" if role == "driver" else ident, out=str(out))
-        proc = subprocess.Popen([sys.executable, "-m", module, *argv], env=env, stdin=subprocess.DEVNULL)
-        children.append(Child(name, proc))
-    interrupted = False
-    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
+        # stdout joins stderr: nothing a child writes reaches the terminal except through the runner
+        proc = subprocess.Popen([sys.executable, "-m", module, *argv], env=env, stdin=subprocess.DEVNULL,
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, process_group=0,
+                                preexec_fn=setup)
+        children.append(Child(name, proc, endpoints[name], name in picked))
+    for c in children:
+        c.reader = threading.Thread(target=_pump, args=(c, display), name=f"stderr-{c.name}", daemon=True)
+        c.reader.start()
+
+
+def _child_setup(parent: int) -> Callable[[], None] | None:
+    """What a child runs between fork and exec: ask Linux for SIGTERM when the runner dies.
+
+    PR_SET_PDEATHSIG fires when the thread that forked the child ends, so children are started
+    from the main thread only; the fork happens before any reader thread of this start exists.
+    """
+    if not sys.platform.startswith("linux"):
+        return None
     try:
-        code = _watch(children)
-    except KeyboardInterrupt:
-        interrupted = True
-        code = 130
-        print("v2vsim: interrupted; stopping every process (partial results are written)", file=sys.stderr)
-    finally:
-        _stop_all(children)
-        signal.signal(signal.SIGTERM, previous)
-    if not interrupted and code == 0:
-        print(f"v2vsim: done: {out / 'report.md'}", file=sys.stderr)
-    return code
+        prctl = ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):
+        return None
+    sigterm = int(signal.SIGTERM)
+
+    def setup() -> None:
+        prctl(PR_SET_PDEATHSIG, sigterm, 0, 0, 0)
+        if os.getppid() != parent:  # the runner died before prctl took effect
+            os.kill(os.getpid(), sigterm)
+
+    return setup
+
+
+def _pump(child: Child, display: ProgressDisplay) -> None:
+    """Pass a child's stderr on: progress records to the display, every other line as it is (a line
+    without a v2vsim prefix, e.g. a traceback, gets the process name so that crashes are attributable)."""
+    assert child.proc.stdout is not None
+    with child.proc.stdout:
+        for raw in iter(child.proc.stdout.readline, b""):
+            line = raw.decode("utf-8", "replace").rstrip("\r\n")
+            if child.quiet:
+                continue
+            doc = parse_record(line)
+            try:
+                if doc is not None:
+                    display.record(child.name, doc)
+                elif child.picked and "address already in use" in line:
+                    child.port_taken = True  # our port, not the user's transport.listen: the runner re-plans
+                else:
+                    display.message(line if line.startswith("v2vsim") else f"[{child.name}] {line}")
+            except (OSError, ValueError):  # our own stderr is gone (e.g. `| head`): keep draining the pipe
+                child.quiet = True  # so that the child never blocks on a full pipe
 
 
 def _overrides_for_children(sc: Scenario) -> list[str]:
@@ -121,44 +248,91 @@ def _overrides_for_children(sc: Scenario) -> list[str]:
     return list(sc.overrides)
 
 
-def _watch(children: list[Child]) -> int:
-    """Wait for the egos to finish; fail fast when the driver or an ego fails."""
+def _describe(name: str, rc: int) -> str:
+    """How a child ended, for the run's error line."""
+    who = "the simulator driver" if name == "driver.main" else name
+    if rc < 0:
+        return f"{who} died (signal {-rc}{_signame(-rc)})"
+    if rc > 128 and rc - 128 < 65:  # an agent stopped by a signal it caught exits with 128 + N
+        return f"{who} was stopped (signal {rc - 128}{_signame(rc - 128)})"
+    return f"{who} exited with code {rc}"
+
+
+def _signame(n: int) -> str:
+    try:
+        return f", {signal.Signals(n).name}"
+    except ValueError:
+        return ""
+
+
+def _watch(children: list[Child], display: ProgressDisplay) -> int:
+    """Wait for the egos to finish; fail fast when the driver or an ego fails; raise PortRace when
+    a child could not listen on a port the runner picked."""
+    driver = next(c for c in children if c.name == "driver.main")
+    egos = [c for c in children if c.name.startswith("ego.")]
     while True:
-        egos = [c for c in children if c.name.startswith("ego.")]
-        driver = next(c for c in children if c.name == "driver.main")
-        rc = driver.proc.poll()
-        if rc not in (None, 0):
-            print(f"v2vsim: error: the simulator driver exited with code {rc}", file=sys.stderr)
-            return 2 if rc == 2 else 1
-        codes = [e.proc.poll() for e in egos]
-        failed = [(e.name, c) for e, c in zip(egos, codes, strict=True) if c not in (None, 0)]
+        codes = {c.name: c.exited() for c in children}
+        for c in children:
+            rc = codes[c.name]
+            if rc not in (None, 0) and c.picked and (rc == PORT_RACE_EXIT or c.port_taken):
+                raise PortRace(c.name, c.endpoint)
+        failed = [(c, codes[c.name]) for c in [driver, *egos] if codes[c.name] not in (None, 0)]
         if failed:
-            name, c = failed[0]
-            print(f"v2vsim: error: {name} exited with code {c}", file=sys.stderr)
-            return 2 if c == 2 else 1
-        if all(c == 0 for c in codes):
+            for c, rc in failed:
+                display.message(f"v2vsim: error: {_describe(c.name, rc)}")  # type: ignore[arg-type]
+            if codes[driver.name] not in (None, 0) and display.started:
+                _wait_exit(egos, EGO_NOTICE_S)  # the egos write why they stopped, then exit
+            rc = failed[0][1]
+            return 2 if rc == 2 else 1
+        if all(codes[e.name] == 0 for e in egos):
             return 0
         for c in children:
-            rc = c.proc.poll()
+            rc = codes[c.name]
             # A CAV killed by a signal is a dead agent the ego copes with; one that exits with an
             # error is a failure to report (it would otherwise leave the driver waiting for it).
             if c.name.startswith("cav.") and rc is not None and 0 < rc < 128:
-                print(f"v2vsim: error: {c.name} exited with code {rc}", file=sys.stderr)
+                display.message(f"v2vsim: error: {_describe(c.name, rc)}")
                 return 2 if rc == 2 else 1
         time.sleep(0.2)
+
+
+def _wait_exit(children: list[Child], timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    for c in children:
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            c.proc.wait(timeout=max(0.0, deadline - time.monotonic()))
+
+
+def _signal(c: Child, sig: int) -> None:
+    """Signal a child's whole process group (it leads its own group)."""
+    if c.proc.poll() is None:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.killpg(c.proc.pid, sig)
+
+
+def _kill_quietly(children: list[Child]) -> None:
+    """SIGKILL every child of a start that is being replaced (it has not run a frame: nothing to save)."""
+    for c in children:
+        c.quiet = True
+        _signal(c, signal.SIGKILL)
+    for c in children:
+        c.proc.wait()
+        if c.reader is not None:
+            c.reader.join(timeout=2.0)
 
 
 def _stop_all(children: list[Child]) -> None:
     """SIGINT to every child still running, then SIGKILL after STOP_GRACE_S: no orphans."""
     for c in children:
-        if c.proc.poll() is None:
-            with contextlib.suppress(ProcessLookupError):
-                c.proc.send_signal(signal.SIGINT)
+        _signal(c, signal.SIGINT)
     deadline = time.monotonic() + STOP_GRACE_S
     for c in children:
         left = max(0.0, deadline - time.monotonic())
         try:
             c.proc.wait(timeout=left)
         except subprocess.TimeoutExpired:
-            c.proc.kill()
+            _signal(c, signal.SIGKILL)
             c.proc.wait()
+    for c in children:  # their last words (errors, the ego's status) before the runner's own
+        if c.reader is not None:
+            c.reader.join(timeout=2.0)

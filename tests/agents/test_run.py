@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import os
 import queue
+import re
 import signal
 import socket
 import subprocess
@@ -55,6 +56,21 @@ class Run:
                     break
         raise AssertionError(f"never saw {text!r}; stderr:\n{''.join(self.log)}")
 
+    def wait_frames(self, n: int, timeout: float = 240) -> None:
+        """Until the runner's progress line says at least `n` frames are done."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            try:
+                line = self.lines.get(timeout=1)
+            except queue.Empty:
+                if self.proc.poll() is not None:
+                    break
+                continue
+            m = re.match(r"v2vsim: frame (\d+)/", line)
+            if m and int(m.group(1)) >= n:
+                return
+        raise AssertionError(f"never saw frame {n}; stderr:\n{''.join(self.log)}")
+
     def finish(self, timeout: float = 300) -> int:
         rc = self.proc.wait(timeout=timeout)
         time.sleep(0.2)
@@ -75,6 +91,13 @@ def test_run_writes_report_metrics_recording_and_plots(tmp_path: Path) -> None:
     run = Run("--frames", "4", "--out", str(out), "--set", "cavs.count=3", "--set", "comm.range_m=300",
               "--set", f"comm.auth.key_file={key}")  # every message signed and checked
     assert run.finish() == 0, "".join(run.log)
+    # one progress display, the runner's (stderr is not a terminal: a plain line per frame for 4 frames),
+    # and no per-process progress lines or raw progress records
+    progress = [ln for ln in run.log if ln.startswith("v2vsim: frame ")]
+    assert [ln.split()[2] for ln in progress] == ["1/4", "2/4", "3/4", "4/4"], "".join(run.log)
+    assert "V2V 8 delivered, 0 dropped, 0 out of range" in progress[-1] and "x real time" in progress[-1]
+    assert not [ln for ln in run.log if re.search(r"\] frame \d+/|@progress", ln)], "".join(run.log)
+    assert run.log[-1].startswith("v2vsim: done: ")
     m = _metrics(out)
     assert m["scenario"] == "intersection" and m["frames"] == 4 and m["cavs"] == 3 and m["modality"] == "lidar"
     assert m["real_time_factor"] > 0
@@ -112,7 +135,7 @@ def test_run_writes_report_metrics_recording_and_plots(tmp_path: Path) -> None:
 def test_killed_cav_is_noticed_and_the_run_finishes(tmp_path: Path) -> None:
     out = tmp_path / "run"
     run = Run("--frames", "60", "--out", str(out), "--set", "cavs.count=3", "--methods", "none,cobevt")
-    run.wait_for("[ego cav0] frame 20/60")
+    run.wait_frames(20)
     victims = [p for p in run.children() if "agents.cav" in " ".join(p.cmdline()) and "cav2" in p.cmdline()]
     assert len(victims) == 1
     victims[0].send_signal(signal.SIGKILL)
@@ -127,7 +150,7 @@ def test_killed_cav_is_noticed_and_the_run_finishes(tmp_path: Path) -> None:
 def test_ctrl_c_stops_every_process_and_writes_partial_report(tmp_path: Path) -> None:
     out = tmp_path / "run"
     run = Run("--frames", "400", "--out", str(out), "--set", "cavs.count=2", "--methods", "none,cobevt")
-    run.wait_for("[ego cav0] frame 20/400")
+    run.wait_frames(20)
     children = run.children()
     assert len(children) >= 4
     t0 = time.monotonic()
@@ -140,6 +163,79 @@ def test_ctrl_c_stops_every_process_and_writes_partial_report(tmp_path: Path) ->
     assert (out / "report.md").exists()
     gone, alive = psutil.wait_procs(children, timeout=5)
     assert not alive, f"orphans: {[p.cmdline() for p in alive]}"
+
+
+def _agents(run: Run, module: str) -> list[psutil.Process]:
+    return [p for p in run.children() if module in " ".join(p.cmdline())]
+
+
+def test_sigkilled_runner_leaves_no_orphans(tmp_path: Path) -> None:
+    """issue 8 item 6: the children get SIGTERM when the runner dies (PR_SET_PDEATHSIG)."""
+    run = Run("--frames", "400", "--out", str(tmp_path / "run"), "--set", "cavs.count=2", "--methods", "none",
+              "--set", "output.rerun=false")
+    run.wait_frames(2)
+    children = run.children()
+    assert len(children) == 4, [p.cmdline() for p in children]
+    run.proc.send_signal(signal.SIGKILL)
+    run.proc.wait(timeout=10)
+    gone, alive = psutil.wait_procs(children, timeout=10)
+    assert not alive, f"orphans: {[p.cmdline() for p in alive]}"
+
+
+def test_killed_driver_is_reported_and_every_process_stops(tmp_path: Path) -> None:
+    """issue 8 item 9: the runner says the driver died, exits non-zero, and stops the rest promptly."""
+    out = tmp_path / "run"
+    run = Run("--frames", "400", "--out", str(out), "--set", "cavs.count=2", "--methods", "none",
+              "--set", "output.rerun=false")
+    run.wait_frames(2)
+    children = run.children()
+    drivers = _agents(run, "agents.driver")
+    assert len(drivers) == 1
+    t0 = time.monotonic()
+    drivers[0].send_signal(signal.SIGKILL)
+    rc = run.finish(timeout=60)
+    assert rc == 1, "".join(run.log)
+    assert time.monotonic() - t0 < 15
+    assert any("v2vsim: error: the simulator driver died (signal 9, SIGKILL)" in ln for ln in run.log), run.log
+    assert not any("v2vsim: done" in ln for ln in run.log)
+    gone, alive = psutil.wait_procs(children, timeout=5)
+    assert not alive, f"orphans: {[p.cmdline() for p in alive]}"
+    status = json.loads((out / "metrics.json").read_text())["status"]  # the ego still wrote what it had
+    assert status.startswith("driver died after frame"), status  # and says why it stopped
+
+
+def test_a_port_taken_after_planning_is_replanned(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    """issue 8 item 5: another program takes the port the runner picked for the ego before the ego
+    binds it. That is no user error (exit 2 blaming transport.listen) but a race: the runner picks
+    new ports, restarts every process, and the run completes."""
+    import v2vsim.runner as runner
+    from v2vsim.config import load_scenario
+
+    plans: list[list[int]] = []
+    real = runner.free_ports
+
+    with socket.socket() as squatter:
+        squatter.bind(("127.0.0.1", 0))
+        squatter.listen()
+        taken = squatter.getsockname()[1]
+
+        def free_ports(n: int) -> list[int]:
+            ports = real(n)
+            if not plans:
+                ports[-1] = taken  # the ego's (driver, cavs, ego)
+            plans.append(ports)
+            return ports
+
+        monkeypatch.setattr(runner, "free_ports", free_ports)
+        sc = load_scenario(SCENARIO, ["cavs.count=2", "perception.methods=[none]", "output.rerun=false"])
+        rc = runner.run(sc, tmp_path / "run", frames=2)
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    assert len(plans) == 2 and taken not in plans[1]
+    assert f"ego.cav0 could not listen on tcp/127.0.0.1:{taken}" in err and "restarting every process" in err
+    assert "transport.listen" not in err and "Traceback" not in err
+    assert _metrics(tmp_path / "run")["frames"] == 2
 
 
 def _rogue_messages(run_id: str) -> list[tuple[str, bytes]]:
@@ -168,7 +264,7 @@ def test_malformed_messages_are_rejected_over_a_router(tmp_path: Path) -> None:
         run = Run("--frames", "40", "--out", str(out), "--run-id", "rogue1", "--set", "cavs.count=2",
                   "--methods", "none,cobevt", "--set", "transport.mode=client",
                   "--set", f"transport.connect=[{endpoint}]")
-        run.wait_for("[ego cav0] frame 20/40")
+        run.wait_frames(20)
         cfg = zenoh.Config()
         for k, v in {"mode": "client", "scouting/multicast/enabled": False, "scouting/gossip/enabled": False,
                      "connect/endpoints": [endpoint]}.items():

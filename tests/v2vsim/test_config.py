@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -62,6 +63,24 @@ def test_override_parses_yaml_scalars(tmp_path: Path) -> None:
         ("seed: 1\n", ["comm.drop.p=2"], ["comm.drop.p", "0..1"]),
         ("seed: 1\n", ["comm.nope=1"], ["comm.nope", "unknown key"]),
         ("seed: [1\n", [], ["not valid YAML", "line"]),
+        # issue 8: values that passed the range checks and crashed later, and a key given twice
+        ("duration_s: .inf\n", [], ["duration_s", "finite"]),
+        ("duration_s: .nan\n", [], ["duration_s", "finite"]),
+        ("duration_s: -1\n", [], ["duration_s", "> 0"]),
+        ("rate_hz: -.inf\n", [], ["rate_hz", "finite"]),
+        ("duration_s: 1.0e+308\n", [], ["duration_s", "more frames than can be counted"]),
+        ("seed: 2147483648\n", [], ["seed", "0..2147483647"]),
+        ("seed: -1\n", [], ["seed", "0..2147483647"]),
+        ("seed: 1\n", ["seed=4294967296"], ["seed", "0..2147483647"]),
+        ("transport: {listen: ['tcp/127.0.0.1:65536']}\n", [], ["transport.listen[0]", "1..65535"]),
+        ("transport: {connect: ['tcp/127.0.0.1:99999']}\n", [], ["transport.connect[0]", "1..65535"]),
+        ("transport: {connect: [localhost]}\n", [], ["transport.connect[0]", "zenoh endpoint"]),
+        ("seed: 1\nrate_hz: 5\nseed: 2\n", [], ["duplicate key 'seed'", "line 4", "first at line 2"]),
+        ("comm: {drop: {p: 0.1, p: 0.2}}\n", [], ["duplicate key 'p'", "line 2"]),
+        # issue 7: an ego that is no CAV of the run, or one listed twice
+        ("seed: 1\n", ["cavs.ego=[cav9]"], ["cavs.ego[0]", "'cav9'", "cavs.count is 4", "cav0, cav1, cav2, cav3"]),
+        ("cavs: {count: 2, ego: [cav1, cav2]}\n", [], ["cavs.ego[1]", "'cav2'", "cav0, cav1"]),
+        ("seed: 1\n", ["cavs.ego=[cav0,cav0]"], ["cavs.ego[1]", "'cav0' is listed twice"]),
         ("- a\n- b\n", [], ["top level must be a mapping"]),
     ],
 )
@@ -75,6 +94,65 @@ def test_bad_input_names_file_key_and_allowed(tmp_path: Path, text: str, overrid
     assert str(p) in msg
     for part in expect:
         assert part in msg, msg
+
+
+def test_duplicate_key_in_a_set_value() -> None:
+    with pytest.raises(ConfigError, match="--set comm.latency_ms=.*duplicate key 'mean'"):
+        load_scenario(INTERSECTION, ["comm.latency_ms={mean: 1, mean: 2}"])
+
+
+def test_two_egos_in_range_load(tmp_path: Path) -> None:
+    sc = load_scenario(_write(tmp_path, "traffic: {backend: highway-env}\n"), ["cavs.count=3", "cavs.ego=[cav2, cav0]"])
+    assert sc.cavs.ego == ("cav2", "cav0")
+
+
+def test_merge_keys_are_not_duplicates(tmp_path: Path) -> None:
+    text = "traffic: {backend: highway-env}\nx: &d {mean: 5}\n"
+    with pytest.raises(ConfigError, match="unknown key"):  # the anchor parses; only the stray key is refused
+        load_scenario(_write(tmp_path, text))
+    merged = "traffic: {backend: highway-env}\ncomm:\n  latency_ms: {<<: {mean: 5}, mean: 7}\n"
+    sc = load_scenario(_write(tmp_path, merged))
+    assert sc.comm.latency_ms.mean == 7
+
+
+@pytest.mark.parametrize("content", [b"", b"\n", b"  \t\r\n  \n"])
+def test_empty_or_blank_key_file_is_refused(tmp_path: Path, content: bytes) -> None:
+    """issue 8 item 4: an empty key would turn signing on with a key anyone can sign with."""
+    key = tmp_path / "v2v.key"
+    key.write_bytes(content)
+    p = _write(tmp_path, "traffic: {backend: highway-env}\ncomm: {auth: {key_file: v2v.key}}\n")
+    with pytest.raises(ConfigError) as e:
+        load_scenario(p)
+    msg = str(e.value)
+    assert "comm.auth.key_file" in msg and str(key) in msg and "empty or only whitespace" in msg
+    key.write_bytes(b"  a secret\n")
+    assert load_scenario(p).comm.auth.key_file == str(key)
+
+
+def test_missing_or_unreadable_key_file_is_refused(tmp_path: Path) -> None:
+    p = _write(tmp_path, "traffic: {backend: highway-env}\ncomm: {auth: {key_file: nope.key}}\n")
+    with pytest.raises(ConfigError, match=r"comm\.auth\.key_file: file not found"):
+        load_scenario(p)
+    (tmp_path / "dir.key").mkdir()
+    with pytest.raises(ConfigError, match=r"comm\.auth\.key_file: file not found"):
+        load_scenario(p, ["comm.auth.key_file=dir.key"])
+    if os.geteuid() != 0:  # root reads anything
+        key = tmp_path / "locked.key"
+        key.write_text("secret")
+        key.chmod(0)
+        with pytest.raises(ConfigError, match=r"comm\.auth\.key_file: cannot read"):
+            load_scenario(p, ["comm.auth.key_file=locked.key"])
+
+
+def test_binary_scenario_file(tmp_path: Path) -> None:
+    p = tmp_path / "s.yaml"
+    p.write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR\xff\xfe")
+    with pytest.raises(ConfigError, match="not a text \\(UTF-8\\) file"):
+        load_scenario(p)
+    p.write_bytes(b"seed: 1\x00\x01\n")  # valid UTF-8, but not YAML
+    with pytest.raises(ConfigError, match="not valid YAML") as e:
+        load_scenario(p)
+    assert "\n" not in str(e.value)
 
 
 def test_missing_scenario_file(tmp_path: Path) -> None:

@@ -25,6 +25,11 @@ decoder. 1 means off. Lossless `compression` ("zlib") is separate and applies to
 
 A message that fails any check raises `RejectedMessage(reason)` and nothing else, so a
 receiving process can count it and carry on.
+
+What a receiver accepts is a `KindSpec` per kind (`decode(..., spec=...)`): the payload's shape
+(exact sizes or `AtMost(n)` bounds) and exactly which extras it must carry. Every check that
+bounds memory (kind, names, shapes, the total declared size, the message length) runs before
+the payload is inflated or copied, so a 1 MB zlib bomb declaring 67 M points costs nothing.
 """
 
 from __future__ import annotations
@@ -36,7 +41,7 @@ import struct
 import zlib
 from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, TypeAlias
 
 import numpy as np
 
@@ -45,7 +50,7 @@ VERSION = 1
 FLAG_SIGNED = 0x01
 _KNOWN_FLAGS = FLAG_SIGNED
 TAG_LEN = 32  # hmac-sha256
-MAX_PAYLOAD_BYTES = 1 << 30  # declared sizes above this are refused before any allocation
+MAX_PAYLOAD_BYTES = 256 << 20  # declared sizes above this are refused before any allocation (no spec given)
 MAX_NDIM = 8
 
 Kind = Literal["features", "points", "outputs"]
@@ -65,12 +70,67 @@ _U8 = struct.Struct("<B")
 _U16 = struct.Struct("<H")
 _U32 = struct.Struct("<I")
 
-ShapeSpec = tuple[int | None, ...]
-"""An expected shape: a fixed length, each entry an exact size or None for 'any'."""
+
+
+@dataclass(frozen=True)
+class AtMost:
+    """A dimension of any size from 0 to `n` (a point count, a box count): bounded, unlike None."""
+
+    n: int
+
+
+Dim: TypeAlias = int | AtMost | None
+ShapeSpec: TypeAlias = tuple[Dim, ...]
+"""An expected shape: a fixed length, each entry an exact size, an AtMost bound, or None for 'any'."""
+
+
+@dataclass(frozen=True)
+class KindSpec:
+    """What a receiver accepts for one kind: the payload's shape and the extras it carries.
+
+    extras: name -> shape of every extra allowed; each one is required unless named in
+    `optional`. Any other extra is 'unexpected_extra', a missing one 'missing_extra'.
+    channel_compression: the ratio the header must name (the receiver's decoder is built for
+    one), None for any.
+    """
+
+    payload: ShapeSpec
+    extras: Mapping[str, ShapeSpec] = field(default_factory=dict)
+    optional: frozenset[str] = frozenset()
+    channel_compression: int | None = 1
+
+    def max_payload_bytes(self, kind: str) -> int | None:
+        """The largest total array size this spec admits (extras at float32), None if unbounded."""
+        sizes = [_max_elems(self.payload)] + [_max_elems(s) for s in self.extras.values()]
+        if any(n is None for n in sizes):
+            return None
+        item = np.dtype(KIND_DTYPES[kind]).itemsize
+        return sizes[0] * item + sum(sizes[1:]) * 4  # type: ignore[operator]
+
+    def max_message_bytes(self, kind: str) -> int | None:
+        """The longest encoded message (headers, ids, zlib overhead, tag) this spec can accept."""
+        raw = self.max_payload_bytes(kind)
+        if raw is None:
+            return None
+        arrays = (1 + len(self.extras)) * (1 + 0xFF + 2 + 4 * MAX_NDIM)
+        return _FIXED.size + 2 * (2 + 0xFFFF) + arrays + 4 + raw + raw // 1000 + 64 + TAG_LEN
+
+
+def _max_elems(spec: ShapeSpec) -> int | None:
+    n = 1
+    for d in spec:
+        if d is None:
+            return None
+        n *= d.n if isinstance(d, AtMost) else d
+    return n
+
 
 REASONS = ("truncated", "bad_magic", "bad_version", "bad_header", "unknown_kind", "unknown_dtype",
            "unexpected_kind", "shape_mismatch", "size_mismatch", "decompress_error", "non_finite",
-           "unknown_sender", "wrong_run", "unsigned", "bad_signature")
+           "unknown_sender", "wrong_run", "unsigned", "bad_signature", "missing_extra", "unexpected_extra",
+           "replayed")
+"""Stable rejection counter keys. missing_extra / unexpected_extra: the extras differ from the
+KindSpec; replayed: a signed control message (v2vsim.comm.control) seen before."""
 
 
 class RejectedMessage(Exception):
@@ -206,24 +266,30 @@ class _Reader:
 
 
 def _shape_ok(shape: tuple[int, ...], spec: ShapeSpec) -> bool:
-    return len(shape) == len(spec) and all(s is None or s == d for d, s in zip(shape, spec, strict=True))
+    return len(shape) == len(spec) and all(
+        s is None or (d <= s.n if isinstance(s, AtMost) else s == d) for d, s in zip(shape, spec, strict=True))
 
 
 def decode(data: bytes | bytearray | memoryview, *, key: bytes | None = None,
            known_senders: Collection[str] | None = None,
            expected: Mapping[str, ShapeSpec] | None = None,
-           run_id: str | None = None) -> Message:
+           run_id: str | None = None,
+           spec: Mapping[str, KindSpec] | None = None) -> Message:
     """Parse and validate one message; raise RejectedMessage(reason) on any problem.
 
     key: when set, the message must carry a valid hmac-sha256 tag ('unsigned' / 'bad_signature');
          when None, a tag, if present, is stripped without being checked.
     known_senders: when set, other sender ids are 'unknown_sender'.
-    expected: kind -> shape spec (None entries are wildcards); extras are checked under
-         "kind.name" keys when present. Kinds missing from the mapping are 'unexpected_kind'.
+    spec: kind -> KindSpec, the strict form a receiver should use: payload shape, required and
+         allowed extras, and a bound on every size. Kinds missing from it are 'unexpected_kind'.
+    expected: the older, lax form (no `spec`): kind -> shape spec; extras are checked under
+         "kind.name" keys when present, others pass. Kinds missing from it are 'unexpected_kind'.
     run_id: when set, messages of another run are 'wrong_run'.
     """
+    if spec is not None and expected is not None:
+        raise TypeError("decode: give `spec` or `expected`, not both")
     try:
-        return _decode(data, key, known_senders, expected, run_id)
+        return _decode(data, key, known_senders, expected, run_id, spec)
     except RejectedMessage:
         raise
     except Exception as e:  # a bug or an input no check foresaw: still a rejection, never a crash
@@ -231,7 +297,13 @@ def decode(data: bytes | bytearray | memoryview, *, key: bytes | None = None,
 
 
 def _decode(data: bytes | bytearray | memoryview, key: bytes | None, known_senders: Collection[str] | None,
-            expected: Mapping[str, ShapeSpec] | None, run_id: str | None) -> Message:
+            expected: Mapping[str, ShapeSpec] | None, run_id: str | None,
+            spec: Mapping[str, KindSpec] | None) -> Message:
+    if spec is not None and len(data) >= 6 and data[5] in _KIND_NAMES and _KIND_NAMES[data[5]] in spec:
+        # Refuse what no accepted message can be as long as, before hashing or copying it.
+        limit = spec[_KIND_NAMES[data[5]]].max_message_bytes(_KIND_NAMES[data[5]])
+        if limit is not None and len(data) > limit:
+            raise RejectedMessage("size_mismatch", f"{len(data)} bytes, the longest acceptable is {limit}")
     data = bytes(data) if not isinstance(data, bytes) else data
     if len(data) < 5:
         raise RejectedMessage("truncated", f"{len(data)} bytes")
@@ -280,6 +352,20 @@ def _decode(data: bytes | bytearray | memoryview, key: bytes | None, known_sende
         raise RejectedMessage("unknown_sender", repr(sender))
     if expected is not None and kind not in expected:
         raise RejectedMessage("unexpected_kind", kind)
+    kspec = None
+    limit = MAX_PAYLOAD_BYTES
+    if spec is not None:
+        if kind not in spec:
+            raise RejectedMessage("unexpected_kind", kind)
+        kspec = spec[kind]
+        if kspec.channel_compression is not None and ch_comp != kspec.channel_compression:
+            raise RejectedMessage("bad_header", f"channel_compression {ch_comp}, this receiver decodes "
+                                                f"{kspec.channel_compression}")
+        if n_arrays > 1 + len(kspec.extras):
+            raise RejectedMessage("unexpected_extra", f"{n_arrays - 1} extras, {kind} carries at most "
+                                                      f"{len(kspec.extras)}")
+        bound = kspec.max_payload_bytes(kind)
+        limit = limit if bound is None else min(limit, bound)
 
     specs: list[tuple[str, np.dtype, tuple[int, ...]]] = []
     total = 0
@@ -289,6 +375,13 @@ def _decode(data: bytes | bytearray | memoryview, key: bytes | None, known_sende
             name = bytes(r.take(nlen)).decode("utf-8")
         except UnicodeDecodeError:
             raise RejectedMessage("bad_header", "array name is not utf-8") from None
+        if kspec is not None:
+            if i == 0 and name:
+                raise RejectedMessage("bad_header", f"the payload array is named {name!r}")
+            if i > 0 and name not in kspec.extras:
+                raise RejectedMessage("unexpected_extra", f"{kind} extra {name!r}")
+            if any(name == seen for seen, _, _ in specs):
+                raise RejectedMessage("bad_header", f"duplicate array {name!r}")
         dtype_code, ndim = r.unpack(struct.Struct("<BB"))
         if dtype_code not in _DTYPE_NAMES:
             raise RejectedMessage("unknown_dtype", f"code {dtype_code}")
@@ -299,15 +392,24 @@ def _decode(data: bytes | bytearray | memoryview, key: bytes | None, known_sende
             raise RejectedMessage("shape_mismatch", f"ndim {ndim}")
         shape = tuple(r.unpack(struct.Struct(f"<{ndim}I")))
         spec_key = kind if i == 0 else f"{kind}.{name}"
-        if expected is not None and spec_key in expected and not _shape_ok(shape, expected[spec_key]):
-            raise RejectedMessage("shape_mismatch", f"{spec_key} shape {shape}, expected {expected[spec_key]}")
+        want = None
+        if kspec is not None:
+            want = kspec.payload if i == 0 else kspec.extras[name]
+        elif expected is not None:
+            want = expected.get(spec_key)
+        if want is not None and not _shape_ok(shape, want):
+            raise RejectedMessage("shape_mismatch", f"{spec_key} shape {shape}, expected {want}")
         nbytes = math.prod(shape) * dtype.itemsize
         total += nbytes
-        if total > MAX_PAYLOAD_BYTES:
-            raise RejectedMessage("size_mismatch", f"declared payload of {total} bytes")
+        if total > limit:
+            raise RejectedMessage("size_mismatch", f"declared payload of {total} bytes, at most {limit}")
         specs.append((name, dtype, shape))
     if len({name for name, _, _ in specs}) != len(specs):
         raise RejectedMessage("bad_header", "duplicate array names")
+    if kspec is not None:
+        missing = set(kspec.extras) - kspec.optional - {name for name, _, _ in specs}
+        if missing:
+            raise RejectedMessage("missing_extra", f"{kind} without {', '.join(sorted(missing))}")
 
     (body_len,) = r.unpack(_U32)
     body = r.take(body_len)

@@ -21,6 +21,7 @@ Key expressions: v2vsim/<run_id>/<kind>/<sender_id>.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import queue
 import re
@@ -79,6 +80,17 @@ def free_port(host: str = "127.0.0.1") -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind((host, 0))
         return int(s.getsockname()[1])
+
+
+def free_ports(n: int, host: str = "127.0.0.1") -> list[int]:
+    """`n` distinct TCP ports that were free a moment ago: every socket stays bound until all are
+    picked, so one plan never holds the same port twice (another process can still take one before
+    its user binds it: the runner re-plans when that happens)."""
+    with contextlib.ExitStack() as stack:
+        socks = [stack.enter_context(socket.socket(socket.AF_INET, socket.SOCK_STREAM)) for _ in range(n)]
+        for s in socks:
+            s.bind((host, 0))
+        return [int(s.getsockname()[1]) for s in socks]
 
 
 def loopback_endpoint(port: int) -> str:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import struct
+import tracemalloc
 import zlib
 
 import numpy as np
@@ -10,6 +11,8 @@ import pytest
 
 from v2vsim.comm.codec import (
     REASONS,
+    AtMost,
+    KindSpec,
     Message,
     RejectedMessage,
     decode,
@@ -252,3 +255,99 @@ def test_outputs_with_no_boxes_and_odd_extras() -> None:
     np.testing.assert_array_equal(out.extras["big_endian"], [0, 1, 2])
     with pytest.raises(ValueError):
         encode(Message(**{**msg.__dict__, "extras": {"": np.zeros(2)}}))
+
+
+# ---- strict receiver spec (KindSpec): required extras, bounded dimensions -----------------------
+
+SPEC = {"features": KindSpec((16, 8, 8), channel_compression=16), "points": KindSpec((AtMost(500), 4)),
+        "outputs": KindSpec((3, 16, 16), extras={"boxes": (AtMost(10), 8)})}
+
+
+def test_spec_accepts_what_the_senders_send() -> None:
+    assert decode(encode(features(channel_compression=16)), spec=SPEC).shape == (16, 8, 8)
+    assert decode(encode(points()), spec=SPEC).shape == (500, 4)
+    out = decode(encode(outputs()), spec=SPEC)
+    assert set(out.extras) == {"boxes"} and out.extras["boxes"].shape == (5, 8)
+    empty = Message(**{**outputs().__dict__, "extras": {"boxes": np.zeros((0, 8), np.float32)}})
+    assert decode(encode(empty), spec=SPEC).extras["boxes"].shape == (0, 8)
+
+
+def test_outputs_without_boxes_is_missing_extra() -> None:
+    """Issue 8 item 1: this message passed the codec and the ego's msg.extras["boxes"] raised KeyError."""
+    bare = Message(**{**outputs().__dict__, "extras": {}})
+    assert reason(encode(bare), spec=SPEC) == "missing_extra"
+    assert reason(encode(bare, b"k"), key=b"k", spec=SPEC) == "missing_extra"  # a valid signature changes nothing
+
+
+def test_unknown_extras_are_unexpected() -> None:
+    odd = Message(**{**outputs().__dict__, "extras": {**outputs().extras, "junk": np.zeros(3, np.float32)}})
+    assert reason(encode(odd), spec=SPEC) == "unexpected_extra"
+    renamed = Message(**{**outputs().__dict__, "extras": {"junk": outputs().extras["boxes"]}})
+    assert reason(encode(renamed), spec=SPEC) == "unexpected_extra"
+    for msg in (features(channel_compression=16), points()):
+        extra = Message(**{**msg.__dict__, "extras": {"boxes": np.zeros((1, 8), np.float32)}})
+        assert reason(encode(extra), spec=SPEC) == "unexpected_extra"
+
+
+def test_spec_bounds_and_exact_sizes() -> None:
+    too_many = Message(**{**points().__dict__, "payload": np.zeros((501, 4), np.float32)})
+    assert reason(encode(too_many), spec=SPEC) == "shape_mismatch"
+    boxes = Message(**{**outputs().__dict__, "extras": {"boxes": np.zeros((11, 8), np.float32)}})
+    assert reason(encode(boxes), spec=SPEC) == "shape_mismatch"
+    wide = Message(**{**outputs().__dict__, "extras": {"boxes": np.zeros((2, 9), np.float32)}})
+    assert reason(encode(wide), spec=SPEC) == "shape_mismatch"
+    assert reason(encode(features(shape=(16, 8, 9), channel_compression=16)), spec=SPEC) == "shape_mismatch"
+    assert reason(encode(features(channel_compression=8)), spec=SPEC) == "bad_header"  # not the ego's decoder
+    assert reason(encode(points()), spec={"features": SPEC["features"]}) == "unexpected_kind"
+    with pytest.raises(TypeError):
+        decode(encode(points()), spec=SPEC, expected={"points": (None, 4)})
+
+
+def _points_header(n: int, body: bytes, compression: int = 1) -> bytes:
+    """A points message declaring (n, 4) float32 with an arbitrary body."""
+    head = struct.pack("<4sBBBBHHIddddd", b"V2VS", 1, 2, 0, compression, 1, 1, 0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    ids = struct.pack("<H", len(RUN)) + RUN.encode() + struct.pack("<H", 4) + b"cav1"
+    arrays = struct.pack("<B", 0) + struct.pack("<BB2I", 2, 2, n, 4)
+    return head + ids + arrays + struct.pack("<I", len(body)) + body
+
+
+def test_zlib_bomb_declaring_67m_points_is_refused_before_inflating() -> None:
+    """Issue 8 item 2: a 1 MB zlib message declaring 67 M points grew the ego by 2.3 GiB."""
+    bomb = zlib.compress(b"\0" * (16 << 20), 9)  # about 16 KiB that inflate to 16 MiB
+    big = _points_header(67_000_000, bomb * (1 + (1 << 20) // len(bomb)), compression=1)  # ~1 MB on the wire
+    data = _points_header(67_000_000, bomb, compression=1)
+    tracemalloc.start()
+    try:
+        assert reason(big, spec=SPEC) == "size_mismatch"  # longer than any acceptable points message
+        assert reason(data, spec=SPEC) == "shape_mismatch"  # the declared shape alone gives it away
+        for d in (big, data):
+            assert reason(d, spec={"points": KindSpec((None, 4))}) == "size_mismatch"  # unbounded: the cap
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 4 << 20, peak
+    # within the bound but inflating past the declared size: the stream decompressor stops at the cap
+    small = _points_header(500, zlib.compress(b"\0" * (16 << 20), 9), compression=1)
+    tracemalloc.start()
+    try:
+        assert reason(small, spec=SPEC) == "size_mismatch"
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 4 << 20, peak
+
+
+def test_an_overlong_message_is_refused_before_hashing() -> None:
+    data = encode(points(), b"k")
+    padded = data[:-32] + b"\0" * (1 << 20) + data[-32:]
+    assert reason(padded, key=b"k", spec=SPEC) == "size_mismatch"
+    assert SPEC["points"].max_message_bytes("points") < (1 << 20)
+    assert KindSpec((None, 4)).max_message_bytes("points") is None
+
+
+def test_payload_array_must_be_unnamed_under_a_spec() -> None:
+    data = bytearray(encode(points()))
+    off = struct.calcsize("<4sBBBBHHIddddd") + 2 + len(RUN) + 2 + len("cav2")
+    assert data[off] == 0  # the payload's name length
+    patched = bytes(data[:off]) + b"\x01x" + bytes(data[off + 1:])
+    assert reason(patched, spec=SPEC) == "bad_header"

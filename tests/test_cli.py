@@ -1,0 +1,79 @@
+"""`v2vsim run` refuses bad input before any process starts: exit 2, one line, no traceback (issue 8)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from v2vsim.cli import main
+
+REPO = Path(__file__).resolve().parents[1]
+SCENARIO = str(REPO / "scenarios" / "intersection.yaml")
+
+
+def _one_line_exit_2(argv: list[str], capsys: pytest.CaptureFixture[str], *expect: str) -> str:
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1, err
+    assert err.startswith("v2vsim: error: ") and "Traceback" not in err
+    for part in expect:
+        assert part in err, err
+    return err
+
+
+@pytest.mark.parametrize(("args", "expect"), [
+    (["--frames", "0"], ["--frames 0", ">= 1"]),
+    (["--frames", "-1"], ["--frames -1", ">= 1"]),
+    (["--set", "duration_s=.inf"], ["duration_s", "finite"]),
+    (["--set", "duration_s=.nan"], ["duration_s", "finite"]),
+    (["--set", "seed=2147483648"], ["seed", "0..2147483647"]),
+    (["--set", "seed=-5"], ["seed", "0..2147483647"]),
+    (["--set", "transport.listen=[tcp/127.0.0.1:70000]"], ["transport.listen[0]", "1..65535"]),
+    (["--set", "cavs.ego=[cav9]"], ["cavs.ego[0]", "'cav9'", "cav0, cav1, cav2, cav3"]),
+    (["--set", "cavs.ego=[cav0,cav0]"], ["cavs.ego[1]", "listed twice"]),
+    (["--run-id", "a/b"], ["--run-id"]),
+])
+def test_run_refuses_bad_arguments(args: list[str], expect: list[str], tmp_path: Path,
+                                   capsys: pytest.CaptureFixture[str]) -> None:
+    _one_line_exit_2(["run", SCENARIO, "--out", str(tmp_path / "out"), *args], capsys, *expect)
+
+
+def test_run_refuses_an_out_that_is_a_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    f = tmp_path / "taken"
+    f.write_text("x")
+    _one_line_exit_2(["run", SCENARIO, "--out", str(f)], capsys, "--out", str(f), "not a directory")
+    _one_line_exit_2(["run", SCENARIO, "--out", str(f / "sub")], capsys, "--out", "cannot write there")
+
+
+def test_run_refuses_an_out_under_proc(capsys: pytest.CaptureFixture[str]) -> None:
+    _one_line_exit_2(["run", SCENARIO, "--out", "/proc/v2vsim-run"], capsys, "--out /proc/v2vsim-run")
+    _one_line_exit_2(["run", SCENARIO, "--out", "/proc/self"], capsys, "--out /proc/self", "cannot write there")
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes anywhere")
+def test_run_refuses_an_unwritable_out(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o555)
+    _one_line_exit_2(["run", SCENARIO, "--out", str(locked)], capsys, "cannot write there")
+
+
+def test_run_refuses_an_output_dir_from_the_scenario(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    f = tmp_path / "taken"
+    f.write_text("x")
+    _one_line_exit_2(["run", SCENARIO, "--set", f"output.dir={f}"], capsys, "output.dir", "not a directory")
+
+
+@pytest.mark.parametrize("content", [b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR\xff", b"\xff\xfe\x00s\x00e\x00e\x00d"])
+def test_binary_scenario_exits_2_from_the_real_command(tmp_path: Path, content: bytes) -> None:
+    p = tmp_path / "s.yaml"
+    p.write_bytes(content)
+    r = subprocess.run([sys.executable, "-m", "v2vsim.cli", "run", str(p), "--out", str(tmp_path / "o")],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, r.stderr
+    assert "not a text (UTF-8) file" in r.stderr and "Traceback" not in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1

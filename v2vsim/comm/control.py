@@ -1,0 +1,129 @@
+"""Control traffic between the processes of a run (world, done, ack, start, static, vis, bye):
+who may send what, and, with comm.auth on, an HMAC-SHA256 envelope under the run key.
+
+Without a signature anyone who can reach the bus could end a run with a 2-byte `done`, so
+under comm.auth every control message travels as
+
+    "<4sBQB" magic b"V2VC", version, sequence number, sender-name length
+    sender name (utf-8, the process name: "driver.main", "cav.<id>", "ego.<id>")
+    payload
+    tag: 32 bytes hmac-sha256(key, domain | run id | kind | sender name | sequence | payload)
+
+The tag covers the run id and the kind, so nothing from another run is accepted and a signed
+`ack` cannot be replayed as `done`; the sequence number (strictly increasing per sender and
+kind, checked by `ReplayGuard`) stops a recorded message from being played back in the same
+run. `ControlPolicy` says which processes may send each kind (world/done/start/static only
+the driver, ack only egos, vis only CAVs); it is applied with and without a key (without one,
+to the sender named in the zenoh key, which is all there is to go on).
+Failures raise codec.RejectedMessage with a reason from codec.REASONS.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import struct
+import threading
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+
+from v2vsim.comm.codec import TAG_LEN, RejectedMessage
+
+CONTROL_KINDS = frozenset({"world", "done", "ack", "start", "static", "vis", "bye"})
+DRIVER = "driver.main"
+CTRL_MAGIC = b"V2VC"
+CTRL_VERSION = 1
+_HEAD = struct.Struct("<4sBQB")
+_DOMAIN = b"v2vsim control v1\0"  # keeps these tags apart from the data messages' tags
+
+
+def process_id(name: str) -> str:
+    """'ego.cav0' -> 'cav0': the sender chunk of the zenoh keys that process publishes on."""
+    return name.split(".", 1)[-1]
+
+
+@dataclass(frozen=True)
+class ControlPolicy:
+    """The process names allowed to send each control kind."""
+
+    senders: Mapping[str, frozenset[str]]
+
+    @classmethod
+    def for_run(cls, cavs: Iterable[str], egos: Iterable[str]) -> ControlPolicy:
+        driver = frozenset({DRIVER})
+        cav_names = frozenset(f"cav.{c}" for c in cavs)
+        ego_names = frozenset(f"ego.{e}" for e in egos)
+        return cls({"world": driver, "done": driver, "start": driver, "static": driver,
+                    "ack": ego_names, "vis": cav_names, "bye": driver | cav_names | ego_names})
+
+    def allows(self, kind: str, name: str) -> bool:
+        return name in self.senders.get(kind, frozenset())
+
+    def allows_key_sender(self, kind: str, sender: str) -> bool:
+        """Whether some process allowed to send `kind` publishes under key chunk `sender`."""
+        return any(process_id(n) == sender for n in self.senders.get(kind, frozenset()))
+
+
+def _tag(key: bytes, run_id: str, kind: str, sender: str, seq: int, payload: bytes) -> bytes:
+    h = hmac.new(key, _DOMAIN, hashlib.sha256)
+    for part in (run_id, kind, sender):
+        b = part.encode("utf-8")
+        h.update(struct.pack("<H", len(b)) + b)
+    h.update(struct.pack("<Q", seq))
+    h.update(payload)
+    return h.digest()
+
+
+def seal(key: bytes, run_id: str, kind: str, sender: str, seq: int, payload: bytes) -> bytes:
+    """The signed envelope of one control message from process `sender` (e.g. 'driver.main')."""
+    name = sender.encode("utf-8")
+    if len(name) > 0xFF:
+        raise ValueError(f"process name longer than 255 bytes: {sender[:40]!r}...")
+    return _HEAD.pack(CTRL_MAGIC, CTRL_VERSION, seq, len(name)) + name + payload + _tag(
+        key, run_id, kind, sender, seq, payload)
+
+
+@dataclass(frozen=True)
+class Opened:
+    sender: str  # process name, e.g. 'driver.main'
+    seq: int
+    payload: bytes
+
+
+def open_sealed(key: bytes, run_id: str, kind: str, key_sender: str, data: bytes,
+                policy: ControlPolicy | None = None) -> Opened:
+    """Verify an envelope that arrived on v2vsim/<run_id>/<kind>/<key_sender>; RejectedMessage if not."""
+    if data[:4] != CTRL_MAGIC:
+        raise RejectedMessage("unsigned", "comm.auth is on and the control message carries no envelope")
+    if len(data) < _HEAD.size:
+        raise RejectedMessage("truncated", f"{len(data)} bytes")
+    _, version, seq, nlen = _HEAD.unpack_from(data)
+    if version != CTRL_VERSION:
+        raise RejectedMessage("bad_version", f"control version {version}")
+    if len(data) < _HEAD.size + nlen + TAG_LEN:
+        raise RejectedMessage("truncated", f"{len(data)} bytes")
+    try:
+        sender = data[_HEAD.size:_HEAD.size + nlen].decode("utf-8")
+    except UnicodeDecodeError:
+        raise RejectedMessage("bad_header", "sender name is not utf-8") from None
+    payload = data[_HEAD.size + nlen:-TAG_LEN]
+    if not hmac.compare_digest(_tag(key, run_id, kind, sender, seq, payload), data[-TAG_LEN:]):
+        raise RejectedMessage("bad_signature", f"{kind} from {sender!r}")
+    if process_id(sender) != key_sender or (policy is not None and not policy.allows(kind, sender)):
+        raise RejectedMessage("unknown_sender", f"{kind} from {sender!r} under key sender {key_sender!r}")
+    return Opened(sender, seq, payload)
+
+
+class ReplayGuard:
+    """Per (sender, kind), sequence numbers must increase: a played-back message is 'replayed'."""
+
+    def __init__(self) -> None:
+        self._last: dict[tuple[str, str], int] = {}
+        self._lock = threading.Lock()
+
+    def check(self, kind: str, opened: Opened) -> None:
+        with self._lock:
+            last = self._last.get((opened.sender, kind), -1)
+            if opened.seq <= last:
+                raise RejectedMessage("replayed", f"{kind} #{opened.seq} from {opened.sender!r}, last #{last}")
+            self._last[(opened.sender, kind)] = opened.seq

@@ -1,0 +1,81 @@
+"""What the ego accepts on the wire for a scenario, and the one function it decodes with.
+
+Every dimension is exact or bounded by the scenario, so the codec can refuse an oversized or
+inflating message from its header alone (v2vsim.comm.codec "KindSpec"):
+
+  features  (C / r, F, F) float16: the encoder's grid, exactly; the header must name the
+            scenario's ratio r = comm.channel_compression (the ego's decoder is built for it)
+  points    (<= lidar.channels * lidar.points_per_channel, 4) float32: one body-frame sweep
+            (v2vsim.perception.body_frame_points keeps at most one return per ray)
+  outputs   (3, 8F, 8F) float16 maps (the decoder upsamples the grid 8x), and exactly one
+            extra, "boxes" (<= MAX_BOXES, 6): x, y, l, w, yaw, score after NMS
+  points and outputs carry no channel compression (ratio 1); no other extra is accepted.
+
+`EgoDecoder` is the ego's decode path for every kind: agents/ego.py calls it for each received
+message and the fuzz test (tests/v2vsim/comm/test_fuzz.py) drives the same object.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Collection, Iterable, Mapping
+from dataclasses import dataclass
+
+from v2vsim.comm.codec import AtMost, KindSpec, Message, RejectedMessage, decode
+from v2vsim.comm.stats import CommStats
+from v2vsim.config import Scenario
+
+MAX_BOXES = 100
+"""Late fusion ships at most this many boxes per CAV: models.heads.decode_detections' top_k
+(tests/v2vsim/comm/test_fuzz.py checks that the two agree)."""
+
+BOX_FIELDS = 6  # x, y, l, w, yaw, score (v2vsim.perception.late_outputs)
+DECODER_UPSAMPLING = 8  # late outputs are 8x the encoder grid
+
+
+def ego_wire_spec(sc: Scenario, encoder_out_channels: int, encoder_out_cells: int) -> dict[str, KindSpec]:
+    """The KindSpec of each message kind the ego of `sc` may receive (see the module docstring)."""
+    c, f = encoder_out_channels, encoder_out_cells
+    s = DECODER_UPSAMPLING * f
+    sweep = sc.sensors.lidar.channels * sc.sensors.lidar.points_per_channel
+    return {
+        "features": KindSpec((c // sc.comm.channel_compression, f, f),
+                             channel_compression=sc.comm.channel_compression),
+        "points": KindSpec((AtMost(sweep), 4)),
+        "outputs": KindSpec((3, s, s), extras={"boxes": (AtMost(MAX_BOXES), BOX_FIELDS)}),
+    }
+
+
+@dataclass(frozen=True)
+class EgoDecoder:
+    """Validates one received V2V message for the ego: its kind's spec, the run, the senders, the key."""
+
+    spec: Mapping[str, KindSpec]
+    run_id: str
+    senders: Collection[str]
+    key: bytes | None = None
+
+    def max_bytes(self, kind: str) -> int:
+        """The longest message of `kind` that can be accepted (longer ones need not even be kept)."""
+        ks = self.spec.get(kind)
+        limit = ks.max_message_bytes(kind) if ks is not None else None
+        return limit if limit is not None else 0
+
+    def decode(self, kind: str, data: bytes, sender: str | None = None) -> Message:
+        """The message that arrived on `kind`'s key from `sender` (the key's last chunk, if known),
+        or RejectedMessage(reason)."""
+        if kind not in self.spec:
+            raise RejectedMessage("unexpected_kind", f"nothing of kind {kind!r} is expected")
+        msg = decode(data, key=self.key, known_senders=self.senders, run_id=self.run_id,
+                     spec={kind: self.spec[kind]})
+        if sender is not None and msg.sender_id != sender:
+            raise RejectedMessage("unknown_sender", f"{msg.sender_id!r} published under {sender!r}")
+        return msg
+
+    def receive(self, kind: str, data: bytes, sender: str | None, stats: Iterable[CommStats]) -> Message | None:
+        """decode(), with a rejection counted (by reason) in every `stats` instead of raised."""
+        try:
+            return self.decode(kind, data, sender)
+        except RejectedMessage as e:
+            for s in stats:
+                s.record_rejected(e.reason)
+            return None
