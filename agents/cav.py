@@ -42,6 +42,7 @@ from v2vsim.perception import (
 from v2vsim.perception import encode as encode_features
 from v2vsim.sensing import SensorFrame, sense
 from v2vsim.sensors.scene import build_map_assets, build_scene
+from v2vsim.timing import StageTimer, write_timing
 from v2vsim.world import WorldState
 from v2vsim.world_io import static_from_bytes, world_from_bytes
 
@@ -70,63 +71,75 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
     done_at: float | None = None
     gone_at: float | None = None  # when the driver's token was seen gone without a done
     frame = -1
-    while True:
-        now = time.monotonic()
-        if done.is_set():
-            done_at = done_at or now
-            # A verified done ends the agent; without comm.auth anyone could have sent it, so it is
-            # believed once the driver is gone too or no world came for DONE_GRACE_S.
-            if bus.authenticated or bus.driver_gone() or now - max(done_at, last_world or 0.0) > DONE_GRACE_S:
-                return 0
-        try:
-            data = worlds.get(timeout=0.2 if done_at or gone_at else 0.5)
-        except queue.Empty:
-            if bus.driver_gone() and not done.is_set():
-                gone_at = gone_at or now
-                bye = bus.farewell(DRIVER)
-                if bye is not None:
-                    print(f"v2vsim-cav {me}: the driver ended (exit {bye.get('code')}) after frame {frame}; "
-                          "agent stops", file=sys.stderr, flush=True)
+    timer = StageTimer()
+    try:
+        while True:
+            now = time.monotonic()
+            if done.is_set():
+                done_at = done_at or now
+                # A verified done ends the agent; without comm.auth anyone could have sent it, so it is
+                # believed once the driver is gone too or no world came for DONE_GRACE_S.
+                if bus.authenticated or bus.driver_gone() or now - max(done_at, last_world or 0.0) > DONE_GRACE_S:
                     return 0
-                if now - gone_at > DRIVER_GRACE_S:
-                    print(f"v2vsim-cav {me}: the driver died after frame {frame}; agent stops",
+            try:
+                with timer.stage("wait"):
+                    data = worlds.get(timeout=0.2 if done_at or gone_at else 0.5)
+            except queue.Empty:
+                if bus.driver_gone() and not done.is_set():
+                    gone_at = gone_at or now
+                    bye = bus.farewell(DRIVER)
+                    if bye is not None:
+                        print(f"v2vsim-cav {me}: the driver ended (exit {bye.get('code')}) after frame {frame}; "
+                              "agent stops", file=sys.stderr, flush=True)
+                        return 0
+                    if now - gone_at > DRIVER_GRACE_S:
+                        print(f"v2vsim-cav {me}: the driver died after frame {frame}; agent stops",
+                              file=sys.stderr, flush=True)
+                        return 1
+                continue
+            last_world = time.monotonic()
+            if realtime:  # sense the newest world; frames we could not keep up with are skipped
+                while not worlds.empty():
+                    data = worlds.get_nowait()
+            try:
+                world = world_from_bytes(data, static)
+            except ValueError as e:
+                print(f"v2vsim-cav {me}: ignoring {e}", file=sys.stderr)
+                continue
+            frame = world.frame
+            actor = world.actor(me)
+            if actor is None:
+                if seen:
+                    print(f"v2vsim-cav {me}: vehicle left the simulation at frame {world.frame}; agent stops",
                           file=sys.stderr, flush=True)
-                    return 1
-            continue
-        last_world = time.monotonic()
-        if realtime:  # sense the newest world; frames we could not keep up with are skipped
-            while not worlds.empty():
-                data = worlds.get_nowait()
-        try:
-            world = world_from_bytes(data, static)
-        except ValueError as e:
-            print(f"v2vsim-cav {me}: ignoring {e}", file=sys.stderr)
-            continue
-        frame = world.frame
-        actor = world.actor(me)
-        if actor is None:
-            if seen:
-                print(f"v2vsim-cav {me}: vehicle left the simulation at frame {world.frame}; agent stops",
-                      file=sys.stderr, flush=True)
-                return 0
-            continue
-        seen = True
-        scene = build_scene(world, assets)
-        lidar = sc.perception.modality == "lidar"
-        sf = sense(world, me, sc, scene, lidar=lidar, cameras=not lidar)
-        seen_ids = _seen_actor_ids(world, sf)
-        bus.put("vis", json.dumps({"frame": world.frame, "ids": sorted(seen_ids)}).encode())
-        feats = encode_features(encoder, sf, sc)
-        stamp = {"run_id": args.run_id, "sender_id": me, "frame": world.frame, "capture_time": world.time,
-                 "sender_pose": actor.pose.as_tuple(), "compression": sc.comm.compression}
-        bus.put("features", encode(Message(kind="features", payload=compress(compressor, feats),
-                                           channel_compression=sc.comm.channel_compression, **stamp), key))
-        if "early" in methods and lidar:
-            bus.put("points", encode(Message(kind="points", payload=body_frame_points(sf, sc), **stamp), key))
-        if late_model is not None:
-            maps, boxes = late_outputs(late_model, feats)
-            bus.put("outputs", encode(Message(kind="outputs", payload=maps, extras={"boxes": boxes}, **stamp), key))
-    return 0
+                    return 0
+                continue
+            seen = True
+            lidar = sc.perception.modality == "lidar"
+            with timer.stage("sensing"):
+                scene = build_scene(world, assets)
+                sf = sense(world, me, sc, scene, lidar=lidar, cameras=not lidar)
+                seen_ids = _seen_actor_ids(world, sf)
+            with timer.stage("comm"):
+                bus.put("vis", json.dumps({"frame": world.frame, "ids": sorted(seen_ids)}).encode())
+            with timer.stage("encoding"):
+                feats = encode_features(encoder, sf, sc)
+            stamp = {"run_id": args.run_id, "sender_id": me, "frame": world.frame, "capture_time": world.time,
+                     "sender_pose": actor.pose.as_tuple(), "compression": sc.comm.compression}
+            with timer.stage("comm"):
+                bus.put("features", encode(Message(kind="features", payload=compress(compressor, feats),
+                                                   channel_compression=sc.comm.channel_compression, **stamp), key))
+                if "early" in methods and lidar:
+                    bus.put("points", encode(Message(kind="points", payload=body_frame_points(sf, sc), **stamp), key))
+            if late_model is not None:
+                with timer.stage("decoding"):  # its own late-fusion outputs: decoder + heads
+                    maps, boxes = late_outputs(late_model, feats)
+                with timer.stage("comm"):
+                    bus.put("outputs", encode(Message(kind="outputs", payload=maps, extras={"boxes": boxes}, **stamp),
+                                              key))
+            timer.frame_done()
+    finally:
+        write_timing(args.out, f"cav.{me}", timer)
 
 
 def _seen_actor_ids(world: WorldState, sf: SensorFrame) -> set[str]:

@@ -1,7 +1,8 @@
 """Simulator driver process: steps the traffic backend and publishes each WorldState.
 
-lockstep: frame k+1 is published only after every ego acknowledged frame k, so the run is
-deterministic for a seed and runs as fast as perception allows. realtime: frames go out at
+lockstep: frame k+1 is published only after every ego acknowledged frame k - transport.pipeline,
+so the CAVs sense and encode the next frames while the egos fuse this one, and the run is still
+deterministic for a seed (egos fuse frames in order, each once all its messages are in). realtime: frames go out at
 rate_hz on the wall clock whether or not anyone kept up. In both, the driver stops (exit 1) once
 every ego process is gone: nobody would fuse what it publishes.
 """
@@ -15,6 +16,7 @@ import time
 
 from agents.common import START_TIMEOUT_S, AgentArgs, Bus, parse_agent_args, run_agent
 from agents.progress import report_progress
+from v2vsim.timing import StageTimer, write_timing
 from v2vsim.traffic import make_backend
 from v2vsim.world_io import static_to_bytes, world_to_bytes
 
@@ -45,6 +47,12 @@ def drive(args: AgentArgs, bus: Bus) -> int:
         print(f"v2vsim-driver: every ego process is gone at frame {k}; stopping", file=sys.stderr, flush=True)
         return True
 
+    def wait_acks(k: int) -> None:
+        while not all(acks.get(e, -1) >= k for e in egos if bus.is_alive(f"ego.{e}")):
+            ack_event.wait(0.5)
+            ack_event.clear()
+
+    timer = StageTimer()
     backend = make_backend(sc)
     try:
         world = backend.reset()
@@ -56,23 +64,29 @@ def drive(args: AgentArgs, bus: Bus) -> int:
         bus.put("start", json.dumps({"frames": frames, "wall_t0": time.time()}).encode())
         report_progress("driver", 0, frames)
         t_start = time.monotonic()
+        ahead = sc.transport.pipeline
         for k in range(frames):
             if egos_gone(k):
                 return 1
-            if k > 0:
-                world = backend.step()
-            bus.put("world", world_to_bytes(world))
-            if sc.transport.clock == "realtime":
-                next_tick = t_start + (k + 1) / sc.rate_hz
-                time.sleep(max(0.0, next_tick - time.monotonic()))
-            else:
-                while not all(acks.get(e, -1) >= k for e in egos if bus.is_alive(f"ego.{e}")):
-                    ack_event.wait(0.5)
-                    ack_event.clear()
+            with timer.stage("stepping"):
+                if k > 0:
+                    world = backend.step()
+            with timer.stage("comm"):
+                bus.put("world", world_to_bytes(world))
+            timer.frame_done()
+            with timer.stage("wait"):
+                if sc.transport.clock == "realtime":
+                    next_tick = t_start + (k + 1) / sc.rate_hz
+                    time.sleep(max(0.0, next_tick - time.monotonic()))
+                else:  # frame k+1 may go out once every live ego has fused frame k - pipeline
+                    wait_acks(k - ahead)
             report_progress("driver", k + 1, frames)
+        if sc.transport.clock != "realtime":
+            wait_acks(frames - 1)  # CAVs end on `done`: not before the egos have everything they need
         bus.put("done", json.dumps({"frames": frames}).encode())
     finally:
         backend.close()
+        write_timing(args.out, "driver", timer)
     return 0
 
 

@@ -17,6 +17,7 @@ or crashed at frame k (the exception is re-raised, exit 1).
 from __future__ import annotations
 
 import json
+import queue
 import signal
 import struct
 import sys
@@ -46,7 +47,7 @@ from agents.progress import report_progress
 from v2vsim.comm.inbox import Inbox, distance
 from v2vsim.comm.stats import CommStats
 from v2vsim.comm.wire_spec import EgoDecoder, ego_wire_spec
-from v2vsim.evaluate import box_iou, fuse_and_score
+from v2vsim.evaluate import box_iou, predict_all, score_all
 from v2vsim.geometry import Pose, relative_pose
 from v2vsim.gt import bev_ground_truth, gt_boxes
 from v2vsim.metrics import ApAccumulator, MethodScore, cavs_in_range
@@ -62,6 +63,7 @@ from v2vsim.perception import (
 from v2vsim.recording import Recorder
 from v2vsim.report import RunSummary, write_outputs
 from v2vsim.sensors.scene import build_map_assets
+from v2vsim.timing import StageTimer
 from v2vsim.world import WorldState
 from v2vsim.world_io import static_from_bytes, world_from_bytes
 
@@ -150,6 +152,8 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
     summary = RunSummary(scenario=sc, ego=me, methods=list(models),
                          untrained=all(v is None for v in checkpoints.values()), checkpoints=checkpoints,
                          skipped=[m for m in methods if m not in models])
+    timer = StageTimer()
+    after = AfterFusion(scores, recorder, me, timer)
     bus.ready()
     t_start = time.monotonic()
     frames_done = 0
@@ -161,7 +165,8 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
     try:
         while k + 1 < args.frames:
             working = k + 1
-            got = _wait_world(box, bus, k + 1, realtime)
+            with timer.stage("wait"):
+                got = _wait_world(box, bus, k + 1, realtime)
             if got == "done":
                 status = f"ended early: the driver finished {_after(k)}" if not realtime else status
                 break
@@ -175,7 +180,8 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
                 break
             k, data = got
             working = k
-            world = world_from_bytes(data, static)
+            with timer.stage("comm"):
+                world = world_from_bytes(data, static)
             ego_actor = world.actor(me)
             if ego_actor is None:
                 status = f"ego {me} left the simulation at frame {k}"
@@ -184,28 +190,37 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
             near = cavs_in_range(world, me, sc.comm.range_m)
             present = [a.id for a in world.cavs if a.id in args.cavs]
             if not realtime:
-                _wait_messages(box, bus, k, present, kinds, lost)
-            for cav in present:
-                if cav not in lost and bus.was_alive(f"cav.{cav}") and not bus.is_alive(f"cav.{cav}"):
-                    lost[cav] = k
+                with timer.stage("wait"):
+                    _wait_messages(box, bus, k, present, kinds, lost)
+            else:  # lockstep marks a CAV lost at the first frame whose messages it never sent (above);
+                # the driver and CAVs may be frames ahead, so a CAV gone by now may have sent frame k
+                for cav in present:
+                    if cav not in lost and _died(bus, cav):
+                        lost[cav] = k
             for cav in lost:
                 stats.record_lost_agent(cav)
-            inp, visible = _collect(box, k, world, me, kinds, inboxes, ego_poses, decoder, args)
-            inp.features = {s: decompress(compressor, v) for s, v in inp.features.items()}
-            gt = bev_ground_truth(world, me, sc.bev, visible, assets=assets)
-            boxes_gt, ids = gt_boxes(world, me, sc.bev)
-            boxes_gt = boxes_gt[[i in visible for i in ids]] if len(ids) else boxes_gt
-            preds = fuse_and_score(models, inp, sc.bev.cells, gt, boxes_gt, scores)
-            for m in preds:
-                scores[m].bytes.append(_bytes_for(m, inboxes))
+            with timer.stage("comm"):
+                inp, visible = _collect(box, k, world, me, kinds, inboxes, ego_poses, decoder, args)
+                inp.features = {s: decompress(compressor, v) for s, v in inp.features.items()}
+            with timer.stage("ground_truth"):
+                gt = bev_ground_truth(world, me, sc.bev, visible, assets=assets)
+                boxes_gt, ids = gt_boxes(world, me, sc.bev)
+                boxes_gt = boxes_gt[[i in visible for i in ids]] if len(ids) else boxes_gt
+            preds = predict_all(models, inp, sc.bev.cells)
+            for m, pred in preds.items():
+                timer.add(f"fusion.{m}", pred.ms - pred.decode_ms)
+                timer.add(f"decoding.{m}", pred.decode_ms)
+            sent = {m: _bytes_for(m, inboxes) for m in preds}
             for ib in inboxes.values():
                 ib.take_bytes()
-            if recorder is not None:
-                recorder.log_frame(k, world, me, gt, preds, inp)
+            # Scoring and recording run beside the next frame's fusion; frames stay in order.
+            after.submit(k, world, gt, boxes_gt, preds, inp, sent)
             frames_done += 1
             summary.neighbours.append(near)
+            timer.frame_done()
             if not realtime:
-                bus.put("ack", json.dumps({"ego": me, "frame": k}).encode())
+                with timer.stage("comm"):
+                    bus.put("ack", json.dumps({"ego": me, "frame": k}).encode())
             report_progress(f"ego.{me}", k + 1, args.frames, delivered=stats.delivered, dropped=stats.dropped,
                             out_of_range=stats.out_of_range)
     except Stop:
@@ -218,7 +233,14 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
         raise
     finally:
         with _signals_deferred():  # a second Ctrl-C or the runner's SIGINT must not cut the files short
+            late_error: BaseException | None = None
+            try:
+                after.close()  # every fused frame scored (and recorded) before the files are written
+            except Exception as e:
+                status = f"crashed after frame {k}: {type(e).__name__}: {' '.join(str(e).split())[:300]}"
+                late_error, code = e, 1
             _reject_leftovers(box, kinds, inboxes, decoder)
+            summary.timing = timer.to_json()
             summary.frames = frames_done
             summary.sim_s = (k + 1) / sc.rate_hz
             summary.status = status
@@ -229,7 +251,61 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
             write_outputs(out_dir, summary, scores, stats, by_kind, box_iou)
             if recorder is not None:
                 recorder.close()
+        if late_error is not None:
+            raise late_error
     return code
+
+
+class AfterFusion:
+    """Scores (and records) fused frames on a worker thread, in frame order, while the main thread
+    fuses the next frame: neither is on the critical path of a lockstep run any more. A bounded
+    queue keeps the worker at most MAX_BEHIND frames behind; its failure surfaces on the next
+    `submit` or at `close`, as a crash of the frame it was working on."""
+
+    MAX_BEHIND = 2
+
+    def __init__(self, scores: dict[str, MethodScore], recorder: Recorder | None, ego: str, timer: StageTimer) -> None:
+        self.scores = scores
+        self.recorder = recorder
+        self.ego = ego
+        self.timer = timer
+        self.jobs: queue.Queue[tuple | None] = queue.Queue(maxsize=self.MAX_BEHIND)
+        self.error: BaseException | None = None
+        self.thread = threading.Thread(target=self._work, name="score-record", daemon=True)
+        self.thread.start()
+
+    def submit(self, k: int, world: WorldState, gt: dict[str, np.ndarray], boxes_gt: np.ndarray,
+               preds: dict, inp: FusionInputs, sent: dict[str, int]) -> None:
+        self._raise()
+        with self.timer.stage("wait_scoring"):
+            self.jobs.put((k, world, gt, boxes_gt, preds, inp, sent))
+
+    def close(self) -> None:
+        if self.thread.is_alive():
+            self.jobs.put(None)
+            self.thread.join()
+        self._raise()
+
+    def _raise(self) -> None:
+        if self.error is not None:
+            err, self.error = self.error, None
+            raise err
+
+    def _work(self) -> None:
+        while (job := self.jobs.get()) is not None:
+            if self.error is not None:
+                continue  # drain: the main thread raises the first failure
+            k, world, gt, boxes_gt, preds, inp, sent = job
+            try:
+                with self.timer.stage("scoring"):
+                    score_all(preds, gt, boxes_gt, self.scores)
+                    for m, n in sent.items():
+                        self.scores[m].bytes.append(n)
+                if self.recorder is not None:
+                    with self.timer.stage("recording"):
+                        self.recorder.log_frame(k, world, self.ego, gt, preds, inp)
+            except BaseException as e:  # noqa: BLE001 - handed to the main thread as is
+                self.error = e
 
 
 def _after(k: int) -> str:
@@ -340,6 +416,14 @@ def _wait_world(box: Mailbox, bus: Bus, k: int, realtime: bool) -> tuple[int, by
                 if now - gone_at > DRIVER_GRACE_S:
                     return "died"
             box.cond.wait(0.2 if gone or box.done else 0.5)
+
+
+def _died(bus: Bus, cav: str) -> bool:
+    """Its token dropped without a clean bye (a CAV whose vehicle left says bye with code 0)."""
+    if not bus.was_alive(f"cav.{cav}") or bus.is_alive(f"cav.{cav}"):
+        return False
+    bye = bus.farewell(f"cav.{cav}")
+    return bye is None or bye.get("code") != 0
 
 
 def _wait_messages(box: Mailbox, bus: Bus, k: int, present: list[str], kinds: list[str],

@@ -200,8 +200,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=_cmd_models)
 
-    p = sub.add_parser("bench", help="benchmarks: sensors | models | comm")
-    p.add_argument("what", choices=["sensors", "models", "comm"])
+    p = sub.add_parser("bench", help="benchmarks: sensors | models | comm | run")
+    p.add_argument("what", choices=["sensors", "models", "comm", "run"])
     p.add_argument("rest", nargs=argparse.REMAINDER, help="options passed to the benchmark (see its --help)")
     p.set_defaults(func=_cmd_bench)
     return parser

@@ -171,6 +171,9 @@ class TransportConfig:
     connect: tuple[str, ...] = _f((), "zenoh endpoints such as tcp/127.0.0.1:7447")
     listen: tuple[str, ...] = _f((), "zenoh endpoints; empty = a free loopback port")
     clock: Literal["lockstep", "realtime"] = "lockstep"
+    # lockstep: frames the driver and CAVs may run ahead of the slowest ego (0 = strict lockstep);
+    # results are the same for any value, only the wall time changes.
+    pipeline: int = _f(2, "an integer 0..16", lambda v: 0 <= v <= 16)
 
 
 @dataclass(frozen=True)

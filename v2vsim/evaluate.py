@@ -2,7 +2,8 @@
 
 The ego process (agents/ego.py) and validation during training (v2vsim.training) both call
 `fuse_and_score`, so a metric printed by `v2vsim train` and one in a run's metrics.json come from
-the same code given the same FusionInputs.
+the same code given the same FusionInputs (the ego calls its two halves, `predict_all` and
+`score_all`, apart so that scoring can run beside the next frame's fusion).
 """
 
 from __future__ import annotations
@@ -21,18 +22,30 @@ def fuse_and_score(models: dict[str, nn.Module], inp: FusionInputs, cells: int, 
     """Predict with every method that has input and add its scores; returns the predictions.
 
     gt: "dynamic", "visible", "road", "lane" masks on the ego grid; boxes_gt [K, 5] scored boxes."""
+    preds = predict_all(models, inp, cells)
+    score_all(preds, gt, boxes_gt, scores)
+    return preds
+
+
+def predict_all(models: dict[str, nn.Module], inp: FusionInputs, cells: int) -> dict[str, Prediction]:
+    """Every method's prediction for one frame (methods without input are left out)."""
     preds = {}
     for m, model in models.items():
         pred = predict(m, model, inp, cells)
-        if pred is None:
-            continue
-        preds[m] = pred
+        if pred is not None:
+            preds[m] = pred
+    return preds
+
+
+def score_all(preds: dict[str, Prediction], gt: dict[str, np.ndarray], boxes_gt: np.ndarray,
+              scores: dict[str, MethodScore]) -> None:
+    """Add one frame's predictions to the running scores (segmentation IoU, AP, fusion time)."""
+    for m, pred in preds.items():
         s = scores[m]
         s.add_segmentation(pred.probs, gt)
         s.fusion_ms.append(pred.ms)
         if s.boxes is not None and pred.boxes is not None:
             s.boxes.add(pred.boxes[:, :5], pred.boxes[:, 5], boxes_gt)
-    return preds
 
 
 def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -225,6 +225,7 @@ class Prediction:
     probs: dict[str, np.ndarray]  # vehicle / road / lane [cells, cells] in the ego grid
     boxes: np.ndarray | None  # [K, 6] (x, y, l, w, yaw, score) in the ego frame (LiDAR)
     ms: float  # wall time of fusion + decoding
+    decode_ms: float = 0.0  # of which the decoder + heads (BEV maps and boxes from the fused features)
 
 
 def _stack(inp: FusionInputs, table: dict[str, np.ndarray]) -> tuple[list[str], Tensor]:
@@ -274,10 +275,12 @@ def predict(method: str, model: nn.Module, inp: FusionInputs, cells: int) -> Pre
             names, feats = _stack(inp, inp.features)  # [L, C, F, F]
             valid = torch.ones(1, len(names), dtype=torch.bool)
             fused = model.fuse(feats[None], _poses(inp, names)[None], valid)
+    t_fused = time.perf_counter()
     out = model.heads(fused)
     dyn, stat = resize_logits(out["dynamic"], cells), resize_logits(out["static"], cells)
     probs = {k: v[0].numpy() for k, v in segmentation_probabilities(dyn, stat).items()}
     boxes = None
     if "det_cls" in out:
         boxes = decode_detections(out["det_cls"], out["det_reg"], model.anchors)[0].numpy()
-    return Prediction(probs, boxes, (time.perf_counter() - t0) * 1000)
+    t_end = time.perf_counter()
+    return Prediction(probs, boxes, (t_end - t0) * 1000, (t_end - t_fused) * 1000)

@@ -34,6 +34,7 @@ class RunSummary:
     skipped: list[str] = field(default_factory=list)  # methods the modality cannot run
     neighbours: list[int] = field(default_factory=list)  # per fused frame: other CAVs within comm.range_m
     checkpoints: dict[str, str | None] = field(default_factory=dict)  # method -> zoo file (None: random init)
+    timing: dict = field(default_factory=dict)  # the ego's StageTimer.to_json(): ms per frame by stage
 
 
 def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: CommStats,
@@ -60,6 +61,9 @@ def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: Comm
         "clock": sc.transport.clock,
         "neighbours_in_range": neighbour_shares(summary.neighbours, sc.cavs.count),
         "ap_sort": sc.evaluation.ap_sort,
+        "pipeline": sc.transport.pipeline,
+        "wall_s": round(summary.wall_s, 3),
+        "timing": summary.timing,  # the ego's own split of a frame (ms), as `v2vsim bench run` prints it
     }
 
 

@@ -209,7 +209,7 @@ def test_a_crashed_ego_writes_crashed_not_complete(tmp_path: Path, monkeypatch: 
     def boom(*a: object, **kw: object) -> None:
         raise RuntimeError("boom\nsecond line")
 
-    monkeypatch.setattr(ego_mod, "fuse_and_score", boom)
+    monkeypatch.setattr(ego_mod, "predict_all", boom)
     with pytest.raises(RuntimeError, match="boom"):
         ego_mod.ego_loop(args, FakeBus(static_to_bytes(static), world_to_bytes(world)))  # type: ignore[arg-type]
     m = _metrics(tmp_path)

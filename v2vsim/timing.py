@@ -1,0 +1,57 @@
+"""Where a process's frame time goes: wall milliseconds per named stage, averaged over frames.
+
+Each agent keeps one `StageTimer`; the ego puts its split in metrics.json ("timing"), the driver
+and CAVs write theirs to <out>/timing/<process>.json, and `v2vsim bench run` prints them side by
+side. Stages named "wait*" are time spent waiting for others, not the process's own compute.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections import defaultdict
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+
+class StageTimer:
+    """Summed wall time per stage; `split()` is ms per frame over the frames counted so far."""
+
+    def __init__(self) -> None:
+        self.total_ms: dict[str, float] = defaultdict(float)
+        self.frames = 0
+
+    @contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.total_ms[name] += (time.perf_counter() - t0) * 1000
+
+    def add(self, name: str, ms: float) -> None:
+        self.total_ms[name] += ms
+
+    def frame_done(self) -> None:
+        self.frames += 1
+
+    def split(self) -> dict[str, float]:
+        n = max(self.frames, 1)
+        return {k: round(v / n, 3) for k, v in self.total_ms.items()}
+
+    def compute_ms(self) -> float:
+        """ms per frame of the process's own work (every stage but the waits)."""
+        return round(sum(v for k, v in self.split().items() if not k.startswith("wait")), 3)
+
+    def to_json(self) -> dict:
+        return {"frames": self.frames, "ms_per_frame": self.split(), "compute_ms_per_frame": self.compute_ms()}
+
+
+def write_timing(out: str, process: str, timer: StageTimer) -> None:
+    """<out>/timing/<process>.json (nothing when the process has no output directory, e.g. a remote CAV)."""
+    if not out:
+        return
+    d = Path(out) / "timing"
+    d.mkdir(parents=True, exist_ok=True)
+    (d / f"{process}.json").write_text(json.dumps(timer.to_json(), indent=1))
