@@ -246,6 +246,20 @@ class BevHeads(nn.Module):
         return out
 
 
+    def for_inference(self) -> BevHeads:
+        """The same function, cheaper on a CPU (outputs equal to ~1e-6): each decoder BatchNorm folded
+        into its conv, and every conv in channels-last layout (NHWC: the 3x3 conv at 8F x 8F, most of
+        the decoder's time, runs ~1.5x faster here). For the frozen models of a run; not for training
+        (the folded state_dict has no BatchNorm keys)."""
+        self.eval()
+        for stage in self.decoder.stages:
+            conv, bn = stage[1], stage[2]
+            if isinstance(bn, nn.BatchNorm2d):
+                stage[1] = torch.nn.utils.fusion.fuse_conv_bn_eval(conv, bn)
+                stage[2] = nn.Identity()
+        return self.to(memory_format=torch.channels_last)
+
+
 def build_bev_heads(modality: str, preset: str) -> BevHeads:
     """Heads of `preset`; the detection head only for modality "lidar"."""
     if modality not in ("lidar", "camera"):

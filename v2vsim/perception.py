@@ -159,6 +159,7 @@ def build_method_models(sc: Scenario, encoder: nn.Module, methods: tuple[str, ..
             model.encoder = encoder
         _load(model.fusion, state, "fusion.")
         _load(model.heads, state, "heads.")
+        model.heads.for_inference()
         out[m] = model.eval()
     return out
 

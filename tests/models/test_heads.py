@@ -106,3 +106,24 @@ def test_heads_accept_custom_sizes() -> None:
     h = BevHeads(32, (16, 8, 8), detection=True)
     out = h(torch.randn(2, 32, 16, 16))
     assert out["dynamic"].shape == (2, 2, 128, 128) and out["det_cls"].shape == (2, 2, 64, 64)
+
+
+def test_heads_for_inference_compute_the_same_function() -> None:
+    """BatchNorm folded into the decoder convs and channels-last layout: the run's heads, equal to
+    the trained ones to float precision (with BatchNorm statistics that are not the identity)."""
+    import copy
+
+    torch.manual_seed(0)
+    heads = BevHeads(16, (16, 8, 8), detection=True).train()
+    with torch.no_grad():
+        for _ in range(3):  # move the running statistics away from (0, 1)
+            heads(torch.randn(2, 16, 8, 8) * 3 + 1)
+    heads.eval()
+    fast = copy.deepcopy(heads).for_inference()
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in fast.modules())
+    x = torch.randn(1, 16, 8, 8)
+    with torch.no_grad():
+        a, b = heads(x), fast(x)
+    assert a.keys() == b.keys()
+    for k in a:
+        assert torch.allclose(a[k], b[k], atol=1e-5, rtol=1e-5), (k, (a[k] - b[k]).abs().max())
