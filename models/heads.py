@@ -233,6 +233,11 @@ class BevHeads(nn.Module):
         super().__init__()
         self.decoder = BevDecoder(in_channels, decoder_channels)
         self.dynamic = nn.Conv2d(decoder_channels[2], 2, 1)  # background, vehicle
+        # Focal-loss prior (Lin et al. 2017, Sec. 4.1): start at p(vehicle) = 0.01 so that the decoder
+        # learns to light up vehicles. From p = 0.5 it found the shortcut of all-dead (ReLU) features on
+        # vehicle cells, where p stays at softmax(bias) < 0.5 for good (vehicle IoU 0 at AP50 0.79).
+        with torch.no_grad():
+            self.dynamic.bias.copy_(torch.tensor([0.0, -math.log((1 - 0.01) / 0.01)]))
         self.static = nn.Conv2d(decoder_channels[2], 3, 1)  # background, road, lane
         self.detection = DetectionHead(decoder_channels[1], num_anchors) if detection else None
 

@@ -30,7 +30,7 @@ def test_a_few_steps_lower_the_loss(tiny_dataset, tmp_path) -> None:
     assigner = AnchorTargetAssigner(model.anchors)
     opt = torch.optim.AdamW(model.parameters(), lr=2e-3)
     losses = []
-    for _ in range(6):
+    for _ in range(10):
         loss = perception_loss(forward(model, spec, batch, None, torch.device("cpu")), batch, "self", assigner)
         opt.zero_grad()
         loss["total"].backward()
