@@ -1,6 +1,7 @@
 """Render zoo predictions against ground truth for a few recorded frames (a PNG to look at).
 
     python scripts/look_predictions.py DATASET SPLIT OUT.png [--methods none,late,early,cobevt] [--samples 3]
+        [--weights auto|ZOO_DIR]
 
 Rows: samples (ego = first CAV, frames with the most neighbours in range); columns: the points of
 every agent in the ego frame, GT (visible vehicles white, unseen grey, road dark), then per method
@@ -32,10 +33,11 @@ def main() -> None:
     ap.add_argument("out")
     ap.add_argument("--methods", default="none,late,early,cobevt")
     ap.add_argument("--samples", type=int, default=3)
+    ap.add_argument("--weights", default="auto", help="perception.weights: auto (the shipped zoo) or a zoo folder")
     a = ap.parse_args()
     torch.set_num_threads(2)
     methods = tuple(a.methods.split(","))
-    sc = load_scenario("scenarios/intersection.yaml")
+    sc = load_scenario("scenarios/intersection.yaml", [f"perception.weights={a.weights}"])
     enc = build_agent_encoder(sc)
     models = build_method_models(sc, enc, methods)
     single = build_method_models(sc, enc, ("late",))["late"]  # what each CAV runs for its late outputs
