@@ -46,8 +46,6 @@ from v2vsim.timing import StageTimer, write_timing
 from v2vsim.world import WorldState
 from v2vsim.world_io import static_from_bytes, world_from_bytes
 
-__all__ = ["cav_loop", "main", "read_key"]
-
 
 def cav_loop(args: AgentArgs, bus: Bus) -> int:
     torch.set_num_threads(1)  # several agent processes share the cores

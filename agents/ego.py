@@ -229,7 +229,7 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
         status = f"driver died {_after(k)}" if died else f"interrupted after {frames_done} frames"
         raise
     except Exception as e:
-        status = f"crashed at frame {working}: {type(e).__name__}: {' '.join(str(e).split())[:300]}"
+        status = _crashed(f"at frame {working}", e)
         raise
     finally:
         with _signals_deferred():  # a second Ctrl-C or the runner's SIGINT must not cut the files short
@@ -237,7 +237,7 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
             try:
                 after.close()  # every fused frame scored (and recorded) before the files are written
             except Exception as e:
-                status = f"crashed after frame {k}: {type(e).__name__}: {' '.join(str(e).split())[:300]}"
+                status = _crashed(f"after frame {k}", e)
                 late_error, code = e, 1
             _reject_leftovers(box, kinds, inboxes, decoder)
             summary.timing = timer.to_json()
@@ -306,6 +306,11 @@ class AfterFusion:
                         self.recorder.log_frame(k, world, self.ego, gt, preds, inp)
             except BaseException as e:  # noqa: BLE001 - handed to the main thread as is
                 self.error = e
+
+
+def _crashed(where: str, e: BaseException) -> str:
+    """metrics.json status of a crash: where, the exception type and its message on one line."""
+    return f"crashed {where}: {type(e).__name__}: {' '.join(str(e).split())[:300]}"
 
 
 def _after(k: int) -> str:

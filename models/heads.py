@@ -19,6 +19,7 @@ from torch import Tensor, nn
 from models.nms import rotated_iou_pairs, rotated_nms
 from models.presets import get_preset
 
+MAX_DETECTIONS = 100  # boxes decode_detections keeps per item (late fusion ships at most this many)
 BOX_CODE_SIZE = 6  # (dx/d, dy/d, log l/la, log w/wa, sin 2dyaw, cos 2dyaw)
 
 
@@ -139,7 +140,7 @@ def decode_detections(
     reg: Tensor,
     anchors: Tensor,
     score_threshold: float = 0.3,
-    top_k: int = 100,
+    top_k: int = MAX_DETECTIONS,
     nms_iou: float | None = 0.15,
     pre_nms: int = 500,
 ) -> list[Tensor]:

@@ -88,8 +88,6 @@ def _check_listen(endpoints: tuple[str, ...]) -> None:
         with socket.socket(family, socket.SOCK_STREAM) as s:
             try:
                 s.bind((host, port))
-            except OverflowError:
-                raise TransportError(f"transport.listen: {ep}: port {port} is out of range 1..65535") from None
             except OSError as e:
                 raise TransportError(f"zenoh: cannot listen on {ep}: {(e.strerror or str(e)).lower()} "
                                      "(pick another port in transport.listen)") from None

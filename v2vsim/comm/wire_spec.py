@@ -20,13 +20,13 @@ from __future__ import annotations
 from collections.abc import Collection, Iterable, Mapping
 from dataclasses import dataclass
 
+from models.heads import MAX_DETECTIONS
 from v2vsim.comm.codec import AtMost, KindSpec, Message, RejectedMessage, decode
 from v2vsim.comm.stats import CommStats
 from v2vsim.config import Scenario
 
-MAX_BOXES = 100
-"""Late fusion ships at most this many boxes per CAV: models.heads.decode_detections' top_k
-(tests/v2vsim/comm/test_fuzz.py checks that the two agree)."""
+MAX_BOXES = MAX_DETECTIONS
+"""Late fusion ships at most this many boxes per CAV: models.heads.decode_detections' top_k."""
 
 BOX_FIELDS = 6  # x, y, l, w, yaw, score (v2vsim.perception.late_outputs)
 DECODER_UPSAMPLING = 8  # late outputs are 8x the encoder grid

@@ -164,13 +164,18 @@ def bit_flips(rng: np.random.Generator) -> Iterator[Case]:
             yield Case(f"{kind} signed bit flip", kind, "cav1", bytes(data), True)
 
 
+def _array_to_corrupt(i: int, rng: np.random.Generator) -> tuple[str, bool, bytearray, dict[str, int], int]:
+    """Case i's kind (cycling), whether it is keyed (alternating), a valid message as editable bytes
+    (unsigned: `_out` signs it again after the edit), its header layout, and which array to corrupt."""
+    kind = list(KIND_CODES)[i % 3]
+    keyed = bool(i % 2)
+    data = bytearray(_unsigned(encode(_msg(kind, rng), KEY if keyed else None), keyed))
+    return kind, keyed, data, _layout(bytes(data)), int(rng.integers(0, 2 if kind == "outputs" else 1))
+
+
 def huge_shapes(rng: np.random.Generator) -> Iterator[Case]:
     for i in range(600):
-        kind = list(KIND_CODES)[i % 3]
-        keyed = bool(i % 2)
-        data = bytearray(_unsigned(encode(_msg(kind, rng), KEY if keyed else None), keyed))
-        lay = _layout(bytes(data))
-        arr = int(rng.integers(0, 2 if kind == "outputs" else 1))
+        kind, keyed, data, lay, arr = _array_to_corrupt(i, rng)
         for d in range(lay[f"ndim{arr}"]):
             big = int(rng.choice([1 << 20, 67_000_000, 0xFFFFFFFF, int(rng.integers(257, 1 << 32))]))
             struct.pack_into("<I", data, lay[f"shape{arr}"] + 4 * d, big)
@@ -233,11 +238,7 @@ def non_finite(rng: np.random.Generator) -> Iterator[Case]:
 
 def wrong_dtypes(rng: np.random.Generator) -> Iterator[Case]:
     for i in range(450):
-        kind = list(KIND_CODES)[i % 3]
-        keyed = bool(i % 2)
-        plain = bytearray(_unsigned(encode(_msg(kind, rng), KEY if keyed else None), keyed))
-        lay = _layout(bytes(plain))
-        arr = int(rng.integers(0, 2 if kind == "outputs" else 1))
+        kind, keyed, plain, lay, arr = _array_to_corrupt(i, rng)
         right = plain[lay[f"dtype{arr}"]]
         choices = [c for c in range(256) if c != right and not (arr == 1 and c in (1, 2))]
         plain[lay[f"dtype{arr}"]] = int(rng.choice(choices[:8] if i % 3 else choices))
