@@ -40,8 +40,10 @@ from v2vsim.perception import (
     late_outputs,
 )
 from v2vsim.perception import encode as encode_features
+from v2vsim.recording.scan import encode_scan, world_points
 from v2vsim.sensing import SensorFrame, sense
-from v2vsim.sensors.scene import build_map_assets, build_scene
+from v2vsim.sensors.camera import render_cameras
+from v2vsim.sensors.scene import Scene, build_map_assets, build_scene
 from v2vsim.timing import StageTimer, write_timing
 from v2vsim.world import WorldState
 from v2vsim.world_io import static_from_bytes, world_from_bytes
@@ -135,9 +137,26 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
                 with timer.stage("comm"):
                     bus.put("outputs", encode(Message(kind="outputs", payload=maps, extras={"boxes": boxes}, **stamp),
                                               key))
+            if sc.output.rerun:
+                with timer.stage("recording"):
+                    bus.put("scan", _scan(world, sf, scene, args))
             timer.frame_done()
     finally:
         write_timing(args.out, f"cav.{me}", timer)
+
+
+def _scan(world: WorldState, sf: SensorFrame, scene: Scene, args: AgentArgs) -> bytes:
+    """The recording's view of this frame: a subset of the sweep in world coordinates, and from
+    an ego's own CAV its four camera images (rendered for the recording if the encoder used LiDAR)."""
+    sc, me = args.scenario, args.cav
+    pose = world.actor(me).pose
+    points = None if sf.lidar is None else world_points(sf.lidar.points, pose, sc.sensors.lidar.height_m, sc.seed,
+                                                        world.frame, me)
+    images = None
+    if me in args.egos:
+        cams = sf.cameras if sf.cameras is not None else render_cameras(world, me, sc.sensors.cameras, scene=scene)
+        images = cams.images
+    return encode_scan(world.frame, points, images)
 
 
 def _seen_actor_ids(world: WorldState, sf: SensorFrame) -> set[str]:

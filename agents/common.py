@@ -13,7 +13,7 @@ within milliseconds instead of waiting for a timeout. A process that ends on its
 Ctrl-C, an error) first says `bye` with its exit code, so that a token that drops without a
 bye means the process died.
 
-Control kinds (v2vsim.comm.control: world, done, ack, start, static, vis, bye) are checked by
+Control kinds (v2vsim.comm.control: world, done, ack, start, static, vis, scan, bye) are checked by
 the Bus itself: only the processes allowed to send a kind are heard, and with comm.auth on
 every control message is signed under the run key and verified on receipt. Invalid ones are
 dropped and counted (`control_rejections`), with one warning per kind on stderr. The V2V data

@@ -26,6 +26,7 @@ import time
 from collections import defaultdict
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -44,7 +45,7 @@ from agents.common import (
     run_agent,
 )
 from agents.progress import report_progress
-from v2vsim.comm.inbox import Inbox, distance
+from v2vsim.comm.inbox import Inbox, LinkEvent, distance
 from v2vsim.comm.stats import CommStats
 from v2vsim.comm.wire_spec import EgoDecoder, ego_wire_spec
 from v2vsim.evaluate import box_iou, predict_all, score_all
@@ -53,6 +54,7 @@ from v2vsim.gt import bev_ground_truth, gt_boxes
 from v2vsim.metrics import ApAccumulator, MethodScore, cavs_in_range
 from v2vsim.perception import (
     FusionInputs,
+    Prediction,
     build_agent_encoder,
     build_compressor,
     build_method_models,
@@ -60,7 +62,8 @@ from v2vsim.perception import (
     method_checkpoints,
     runnable_methods,
 )
-from v2vsim.recording import Recorder
+from v2vsim.recording.recorder import Recorder
+from v2vsim.recording.scan import Scan, decode_scan, max_scan_bytes, scan_frame
 from v2vsim.report import RunSummary, write_outputs
 from v2vsim.sensors.scene import build_map_assets
 from v2vsim.timing import StageTimer
@@ -69,6 +72,8 @@ from v2vsim.world_io import static_from_bytes, world_from_bytes
 
 HANG_TIMEOUT_S = 60.0  # a live CAV that sends nothing for this long is treated as lost
 MAX_VIS_BYTES = 1 << 20  # the visible-ids side channel: a few hundred ids
+# Side channels between our own processes, not V2V messages: not channel-modelled, not counted.
+SIDE_KINDS = ("vis", "scan")
 
 
 class Mailbox:
@@ -89,9 +94,9 @@ class Mailbox:
         self.limits = dict(limits or {})
 
     def put(self, kind: str, sender: str, data: bytes) -> None:
-        limit = self.limits.get(kind, MAX_VIS_BYTES if kind == "vis" else 0)
+        limit = self.limits.get(kind, 0)
         if limit and len(data) > limit:
-            if kind != "vis":
+            if kind not in SIDE_KINDS:
                 with self.cond:
                     self.rejected.append((kind, "size_mismatch"))
             return
@@ -111,6 +116,8 @@ def _peek_frame(kind: str, data: bytes) -> int | None:
             return int(json.loads(data)["frame"])
         except (ValueError, KeyError, TypeError):
             return None
+    if kind == "scan":
+        return scan_frame(data)
     try:
         return int(struct.unpack_from("<I", data, 12)[0])  # codec fixed header: frame after 12 bytes
     except struct.error:
@@ -134,8 +141,10 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
     compressor = build_compressor(sc, c)
     decoder = EgoDecoder(ego_wire_spec(sc, c, f), args.run_id, frozenset(args.cavs), key)
 
-    box = Mailbox({kind: decoder.max_bytes(kind) for kind in kinds})
-    for kind in [*kinds, "vis"]:
+    side = ["vis", "scan"] if sc.output.rerun else ["vis"]
+    box = Mailbox({kind: decoder.max_bytes(kind) for kind in kinds} | {"vis": MAX_VIS_BYTES,
+                                                                       "scan": max_scan_bytes(sc)})
+    for kind in [*kinds, *side]:
         bus.subscribe(kind, lambda sender, data, kind=kind: box.put(kind, sender, data))
     bus.subscribe("world", lambda sender, data: _put_world(box, data))
     bus.subscribe("done", lambda sender, data: _set_done(box))
@@ -147,13 +156,14 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
     scores = {m: MethodScore(boxes=ApAccumulator(sort=sc.evaluation.ap_sort) if lidar else None) for m in models}
     ego_poses: dict[int, Pose] = {}
     out_dir = Path(args.out) / ("" if me == args.egos[0] else f"ego_{me}")
-    recorder = Recorder(out_dir / "recording.rrd", sc, list(models)) if sc.output.rerun else None
+    recorder = Recorder(out_dir / "recording.rrd", sc, list(models), list(args.cavs), me,
+                        static) if sc.output.rerun else None
     checkpoints = method_checkpoints(sc, tuple(models))
     summary = RunSummary(scenario=sc, ego=me, methods=list(models),
                          untrained=all(v is None for v in checkpoints.values()), checkpoints=checkpoints,
                          skipped=[m for m in methods if m not in models])
     timer = StageTimer()
-    after = AfterFusion(scores, recorder, me, timer)
+    after = AfterFusion(scores, recorder, timer)
     bus.ready()
     t_start = time.monotonic()
     frames_done = 0
@@ -191,7 +201,7 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
             present = [a.id for a in world.cavs if a.id in args.cavs]
             if not realtime:
                 with timer.stage("wait"):
-                    _wait_messages(box, bus, k, present, kinds, lost)
+                    _wait_messages(box, bus, k, present, [*kinds, *side], lost)
             else:  # lockstep marks a CAV lost at the first frame whose messages it never sent (above);
                 # the driver and CAVs may be frames ahead, so a CAV gone by now may have sent frame k
                 for cav in present:
@@ -200,7 +210,10 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
             for cav in lost:
                 stats.record_lost_agent(cav)
             with timer.stage("comm"):
-                inp, visible = _collect(box, k, world, me, kinds, inboxes, ego_poses, decoder, args)
+                inp, visible, scans = _collect(box, k, world, me, kinds, inboxes, ego_poses, decoder, args)
+                links = inboxes["features"].take_events()
+                for ib in inboxes.values():
+                    ib.take_events()
                 inp.features = {s: decompress(compressor, v) for s, v in inp.features.items()}
             with timer.stage("ground_truth"):
                 gt = bev_ground_truth(world, me, sc.bev, visible, assets=assets)
@@ -214,7 +227,7 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
             for ib in inboxes.values():
                 ib.take_bytes()
             # Scoring and recording run beside the next frame's fusion; frames stay in order.
-            after.submit(k, world, gt, boxes_gt, preds, inp, sent)
+            after.submit(FusedFrame(k, world, gt, boxes_gt, preds, inp, sent, links, scans))
             frames_done += 1
             summary.neighbours.append(near)
             timer.frame_done()
@@ -256,6 +269,21 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
     return code
 
 
+@dataclass(frozen=True)
+class FusedFrame:
+    """One fused frame as handed to the scoring and recording thread."""
+
+    k: int
+    world: WorldState
+    gt: dict[str, np.ndarray]
+    boxes_gt: np.ndarray
+    preds: dict[str, Prediction]
+    inp: FusionInputs
+    sent: dict[str, int]  # method -> bytes received for it this frame
+    links: list[LinkEvent]  # what each sender's feature link did
+    scans: dict[str, Scan]  # sender -> its scan (recording only)
+
+
 class AfterFusion:
     """Scores (and records) fused frames on a worker thread, in frame order, while the main thread
     fuses the next frame: neither is on the critical path of a lockstep run any more. A bounded
@@ -264,21 +292,19 @@ class AfterFusion:
 
     MAX_BEHIND = 2
 
-    def __init__(self, scores: dict[str, MethodScore], recorder: Recorder | None, ego: str, timer: StageTimer) -> None:
+    def __init__(self, scores: dict[str, MethodScore], recorder: Recorder | None, timer: StageTimer) -> None:
         self.scores = scores
         self.recorder = recorder
-        self.ego = ego
         self.timer = timer
-        self.jobs: queue.Queue[tuple | None] = queue.Queue(maxsize=self.MAX_BEHIND)
+        self.jobs: queue.Queue[FusedFrame | None] = queue.Queue(maxsize=self.MAX_BEHIND)
         self.error: BaseException | None = None
         self.thread = threading.Thread(target=self._work, name="score-record", daemon=True)
         self.thread.start()
 
-    def submit(self, k: int, world: WorldState, gt: dict[str, np.ndarray], boxes_gt: np.ndarray,
-               preds: dict, inp: FusionInputs, sent: dict[str, int]) -> None:
+    def submit(self, frame: FusedFrame) -> None:
         self._raise()
         with self.timer.stage("wait_scoring"):
-            self.jobs.put((k, world, gt, boxes_gt, preds, inp, sent))
+            self.jobs.put(frame)
 
     def close(self) -> None:
         if self.thread.is_alive():
@@ -295,15 +321,15 @@ class AfterFusion:
         while (job := self.jobs.get()) is not None:
             if self.error is not None:
                 continue  # drain: the main thread raises the first failure
-            k, world, gt, boxes_gt, preds, inp, sent = job
             try:
                 with self.timer.stage("scoring"):
-                    score_all(preds, gt, boxes_gt, self.scores)
-                    for m, n in sent.items():
+                    score_all(job.preds, job.gt, job.boxes_gt, self.scores)
+                    for m, n in job.sent.items():
                         self.scores[m].bytes.append(n)
                 if self.recorder is not None:
                     with self.timer.stage("recording"):
-                        self.recorder.log_frame(k, world, self.ego, gt, preds, inp)
+                        self.recorder.log_frame(job.k, job.world, job.gt, job.boxes_gt, job.preds, job.inp,
+                                                job.links, job.scans)
             except BaseException as e:  # noqa: BLE001 - handed to the main thread as is
                 self.error = e
 
@@ -433,12 +459,12 @@ def _died(bus: Bus, cav: str) -> bool:
 
 def _wait_messages(box: Mailbox, bus: Bus, k: int, present: list[str], kinds: list[str],
                    lost: dict[str, int]) -> None:
-    """Lockstep: wait until every live CAV's frame-k messages are in (or it is lost)."""
+    """Lockstep: wait until every live CAV's frame-k messages of `kinds` are in (or it is lost)."""
     deadline = time.monotonic() + HANG_TIMEOUT_S
     with box.cond:
         while True:
             missing = [c for c in present if c not in lost and not all(
-                any(s == c for s, _ in box.raw.get((kind, k), ())) for kind in [*kinds, "vis"])]
+                any(s == c for s, _ in box.raw.get((kind, k), ())) for kind in kinds)]
             dead = [c for c in missing if bus.was_alive(f"cav.{c}") and not bus.is_alive(f"cav.{c}")]
             for c in dead:
                 lost[c] = k
@@ -455,12 +481,14 @@ def _wait_messages(box: Mailbox, bus: Bus, k: int, present: list[str], kinds: li
 
 
 def _collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str], inboxes: dict[str, Inbox],
-             ego_poses: dict[int, Pose], decoder: EgoDecoder, args: AgentArgs) -> tuple[FusionInputs, set[str]]:
-    """Decode frame k's messages, pass them through the channel, and gather what is fusable now."""
+             ego_poses: dict[int, Pose], decoder: EgoDecoder,
+             args: AgentArgs) -> tuple[FusionInputs, set[str], dict[str, Scan]]:
+    """Decode frame k's messages, pass them through the channel, and gather what is fusable now;
+    also the ids the CAVs saw (visible-vehicle ground truth) and their scans (for the recording)."""
     realtime = args.scenario.transport.clock == "realtime"
     now = world.time
     with box.cond:
-        raw = {kind: box.raw.pop((kind, k), []) for kind in [*kinds, "vis"]}
+        raw = {kind: box.raw.pop((kind, k), []) for kind in [*kinds, *SIDE_KINDS]}
         # messages of earlier frames that came late (realtime, or a rogue sender): judged now
         for (kind, f), table in list(box.raw.items()):
             if f < k:
@@ -480,10 +508,17 @@ def _collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str],
             visible.update(str(i) for i in json.loads(data)["ids"])
         except (ValueError, KeyError, TypeError):
             pass  # ground-truth side channel between our own processes, not a V2V message
+    scans: dict[str, Scan] = {}
+    for sender, data in raw["scan"]:
+        try:
+            scans[sender] = decode_scan(data, sender, args.scenario)
+        except ValueError as e:
+            print(f"v2vsim-ego: frame {k}: {e}; not recorded", file=sys.stderr)
     for kind in kinds:
         for sender, data in raw[kind]:
             msg = decoder.receive(kind, data, sender, _stats_for(inboxes, kind))
             if msg is None:
+                inboxes[kind].mark_rejected(sender)
                 continue
             ego_then = ego_poses.get(msg.frame, ego_poses[k])
             send_time = now if realtime else msg.capture_time
@@ -504,7 +539,7 @@ def _collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str],
                 inp.points[s] = msg.payload.astype(np.float32)
             else:
                 inp.outputs[s] = (msg.payload.astype(np.float32), msg.extras["boxes"].astype(np.float32))
-    return inp, visible
+    return inp, visible, scans
 
 
 def main(argv: list[str] | None = None) -> int:

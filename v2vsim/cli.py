@@ -136,6 +136,25 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_view(args: argparse.Namespace) -> int:
+    from v2vsim.recording.view import ViewError, find_recording, open_viewer, screenshots
+
+    try:
+        rrd = find_recording(Path(args.run))
+        if args.screenshots is None:
+            return open_viewer(rrd)
+        try:
+            frames = [int(f) for f in args.at.split(",") if f.strip()]
+        except ValueError:
+            raise ViewError(f"--at: expected frame numbers like 0,50,100, got {args.at!r}") from None
+        for path in screenshots(rrd, Path(args.screenshots), frames or [0]):
+            print(path)
+        return 0
+    except ViewError as e:
+        print(f"v2vsim view: error: {e}", file=sys.stderr)
+        return 2
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="v2vsim", description=__doc__)
     sub = parser.add_subparsers(dest="verb", required=True)
@@ -199,6 +218,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", choices=["tiny", "paper"], default="tiny")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=_cmd_models)
+
+    p = sub.add_parser("view", help="open a run's recording.rrd in the Rerun viewer (or take screenshots)")
+    p.add_argument("run", help="the run directory (or a .rrd file)")
+    p.add_argument("--screenshots", metavar="DIR", default=None,
+                   help="instead of opening a window, save PNGs of a headless viewer into DIR")
+    p.add_argument("--at", default="0", help="with --screenshots: comma-separated frames (default 0)")
+    p.set_defaults(func=_cmd_view)
 
     p = sub.add_parser("bench", help="benchmarks: sensors | models | comm | run")
     p.add_argument("what", choices=["sensors", "models", "comm", "run"])

@@ -126,10 +126,39 @@ def test_run_writes_report_metrics_recording_and_plots(tmp_path: Path) -> None:
     assert "CAVs within comm range of cav0" in report and "sorted over the whole run" in report
     for png in ("iou_by_method.png", "iou_per_frame.png"):
         assert (out / png).read_bytes()[:4] == b"\x89PNG"
-    from rerun.chunk import RrdReader
+    _check_recording(out / "recording.rrd", tmp_path)
 
-    paths = {str(p) for p in RrdReader(str(out / "recording.rrd")).store().schema().entity_paths()}
-    assert {"/bev/gt", "/bev/cobevt", "/world/actors"} <= paths, paths
+
+def _check_recording(rrd: Path, tmp_path: Path) -> None:
+    """The run's recording read back: every CAV's points and box, the ego's cameras, links, every
+    method, 4 frames; the boxes where `v2vsim frame` puts the same vehicles at 0.2 s (frame 2)."""
+    from tests.v2vsim.recording.rrd import Recording
+    from v2vsim.config import load_scenario
+    from v2vsim.frame import write_frame
+
+    rec = Recording(rrd)
+    for cav in ("cav0", "cav1", "cav2"):
+        pts = rec.rows(f"/world/lidar/{cav}", "Points3D:positions")
+        assert list(pts) == [0, 1, 2, 3] and all(len(v) > 500 for v in pts.values()), cav
+    for name in ("front", "right", "left", "back"):
+        assert list(rec.rows(f"/world/ego_cameras/{name}", "EncodedImage:blob")) == [0, 1, 2, 3]
+    assert len(rec.rows("/world/links", "LineStrips3D:strips")[3]) == 2  # cav1 and cav2 -> cav0
+    for m in ("none", "late", "early", "attfuse", "fcooper", "v2vnet", "disconet", "cobevt"):
+        assert list(rec.rows(f"/bev/{m}/probability", "EncodedImage:blob")) == [0, 1, 2, 3], m
+        assert list(rec.rows(f"/bev/{m}/boxes", "LineStrips2D:strips")) == [0, 1, 2, 3], m
+    write_frame(load_scenario(SCENARIO, ["cavs.count=3", "comm.range_m=300"]), 0.2, tmp_path / "frame")  # as the run
+    world = json.loads((tmp_path / "frame" / "world.json").read_text())
+    recorded = {}
+    for entity in ("/world/ego", "/world/cavs", "/world/vehicles"):
+        labels = rec.rows(entity, "Boxes3D:labels").get(2)
+        for i, c in enumerate(rec.rows(entity, "Boxes3D:centers")[2]):
+            recorded[labels[i].removeprefix("ego ") if labels else f"{entity}#{i}"] = c
+    for a in world["actors"]:
+        x, y, z, _ = a["pose"]
+        if a["cav"]:
+            assert recorded[a["id"]] == pytest.approx([x, y, z + a["extent"][2] / 2], abs=1e-3), a["id"]
+        else:
+            assert any(c[:2] == pytest.approx([x, y], abs=1e-3) for c in recorded.values()), a["id"]
 
 
 def test_killed_cav_is_noticed_and_the_run_finishes(tmp_path: Path) -> None:

@@ -1,4 +1,4 @@
-"""Control traffic between the processes of a run (world, done, ack, start, static, vis, bye):
+"""Control traffic between the processes of a run (world, done, ack, start, static, vis, scan, bye):
 who may send what, and, with comm.auth on, an HMAC-SHA256 envelope under the run key.
 
 Without a signature anyone who can reach the bus could end a run with a 2-byte `done`, so
@@ -13,7 +13,7 @@ The tag covers the run id and the kind, so nothing from another run is accepted 
 `ack` cannot be replayed as `done`; the sequence number (strictly increasing per sender and
 kind, checked by `ReplayGuard`) stops a recorded message from being played back in the same
 run. `ControlPolicy` says which processes may send each kind (world/done/start/static only
-the driver, ack only egos, vis only CAVs); it is applied with and without a key (without one,
+the driver, ack only egos, vis and scan only CAVs); it is applied with and without a key (without one,
 to the sender named in the zenoh key, which is all there is to go on).
 Failures raise codec.RejectedMessage with a reason from codec.REASONS.
 """
@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 from v2vsim.comm.codec import TAG_LEN, RejectedMessage
 
-CONTROL_KINDS = frozenset({"world", "done", "ack", "start", "static", "vis", "bye"})
+CONTROL_KINDS = frozenset({"world", "done", "ack", "start", "static", "vis", "scan", "bye"})
 DRIVER = "driver.main"
 CTRL_MAGIC = b"V2VC"
 CTRL_VERSION = 1
@@ -54,7 +54,7 @@ class ControlPolicy:
         cav_names = frozenset(f"cav.{c}" for c in cavs)
         ego_names = frozenset(f"ego.{e}" for e in egos)
         return cls({"world": driver, "done": driver, "start": driver, "static": driver,
-                    "ack": ego_names, "vis": cav_names, "bye": driver | cav_names | ego_names})
+                    "ack": ego_names, "vis": cav_names, "scan": cav_names, "bye": driver | cav_names | ego_names})
 
     def allows(self, kind: str, name: str) -> bool:
         return name in self.senders.get(kind, frozenset())

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 from v2vsim.comm.channel import LinkModel, is_stale
 from v2vsim.comm.codec import Message
@@ -22,6 +23,24 @@ class Arrival:
     message: Message
     size: int
     arrival_time: float
+    latency_s: float = 0.0  # on the channel (0 for the receiver's own message)
+
+
+Outcome = Literal["delivered", "in_flight", "dropped", "out_of_range", "stale", "rejected"]
+
+
+@dataclass(frozen=True)
+class LinkEvent:
+    """What one sender's link did at one fusion instant (the recording draws it as a V2V link).
+
+    delivered: a message from this sender is fused for the first time now (latency_ms: its
+    channel latency); otherwise the fate of its newest message: still in flight (latency_ms: when
+    it will arrive), dropped, out of range or rejected by the decoder; stale: what it had sent
+    became too old and nothing newer came."""
+
+    sender: str
+    outcome: Outcome
+    latency_ms: float | None = None
 
 
 class Inbox:
@@ -37,6 +56,7 @@ class Inbox:
         self._pending: dict[str, list[Arrival]] = {}
         self._latest: dict[str, Arrival] = {}  # the newest fused-or-fusable message per sender
         self._fused: set[tuple[str, int]] = set()  # (sender, frame) whose send-to-fuse latency is recorded
+        self._events: dict[str, LinkEvent] = {}  # per sender, since the last take_events()
         self.bytes_this_frame = 0
 
     def link(self, sender: str) -> LinkModel:
@@ -54,7 +74,15 @@ class Inbox:
         d = self.link(msg.sender_id).transmit(size, send_time, distance_m)
         self.stats.record_channel(d)
         if d.delivered:
-            self._pending.setdefault(msg.sender_id, []).append(Arrival(msg, size, d.arrival_time))
+            self._pending.setdefault(msg.sender_id, []).append(Arrival(msg, size, d.arrival_time, d.latency))
+            self._events[msg.sender_id] = LinkEvent(msg.sender_id, "in_flight", d.latency * 1e3)
+        else:
+            self._events[msg.sender_id] = LinkEvent(msg.sender_id, d.reason)
+
+    def mark_rejected(self, sender: str) -> None:
+        """A message from `sender` failed decoding (already counted in stats by the decoder)."""
+        if sender != self.receiver:
+            self._events[sender] = LinkEvent(sender, "rejected")
 
     def sender_pose(self, msg: Message) -> tuple[float, float, float, float]:
         """The sender's capture pose as this receiver knows it (pose noise per link)."""
@@ -76,13 +104,20 @@ class Inbox:
             if is_stale(a.message.capture_time, now, self.cfg.max_age_ms):
                 if sender != self.receiver:
                     self.stats.record_stale()
+                    self._events.setdefault(sender, LinkEvent(sender, "stale"))
                 del self._latest[sender]  # counted once; an older message never comes back
                 continue
             out[sender] = a.message
             if sender != self.receiver and (sender, a.message.frame) not in self._fused:
                 self._fused.add((sender, a.message.frame))  # a message reused in later frames counts once
                 self.stats.record_fused(now - a.message.capture_time)
+                self._events[sender] = LinkEvent(sender, "delivered", a.latency_s * 1e3)
         return out
+
+    def take_events(self) -> list[LinkEvent]:
+        """Each sender's link event since the last call, by sender."""
+        events, self._events = self._events, {}
+        return [events[s] for s in sorted(events)]
 
     def take_bytes(self) -> int:
         """Bytes received for this kind since the last call (the method's bytes_per_frame)."""

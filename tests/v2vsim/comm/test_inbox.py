@@ -66,3 +66,26 @@ def test_out_of_range_is_not_delivered_and_bytes_count_only_the_air() -> None:
     assert inbox.stats.out_of_range == 1 and inbox.stats.sent == 1
     assert set(inbox.ready(0.0)) == {"cav0"}
     assert inbox.take_bytes() == 1000 and inbox.take_bytes() == 0
+
+
+def test_link_events_say_what_each_link_did() -> None:
+    from v2vsim.comm.inbox import LinkEvent
+    from v2vsim.config import DropConfig
+
+    inbox = Inbox(_cfg(latency_ms=LatencyConfig(mean=50.0), max_age_ms=250.0, range_m=100.0), seed=0,
+                  receiver="cav0", kind="features")
+    inbox.offer(_msg("cav0", 0), 100, 0.0, distance_m=0.0)
+    inbox.offer(_msg("cav1", 0), 100, 0.0, distance_m=10.0)
+    inbox.offer(_msg("cav2", 0), 100, 0.0, distance_m=500.0)
+    inbox.ready(0.0)
+    assert inbox.take_events() == [LinkEvent("cav1", "in_flight", 50.0), LinkEvent("cav2", "out_of_range")]
+    inbox.mark_rejected("cav2")
+    inbox.ready(0.1)  # cav1's frame 0 arrived at 50 ms: fused now, for the first time
+    assert inbox.take_events() == [LinkEvent("cav1", "delivered", 50.0), LinkEvent("cav2", "rejected")]
+    inbox.ready(0.2)
+    assert inbox.take_events() == []  # nothing new: reusing frame 0 is not a new delivery
+    inbox.ready(0.3)
+    assert inbox.take_events() == [LinkEvent("cav1", "stale")]  # frame 0 is 300 ms old now
+    lossy = Inbox(_cfg(drop=DropConfig(p=1.0)), seed=0, receiver="cav0", kind="features")
+    lossy.offer(_msg("cav1", 0), 100, 0.0, distance_m=10.0)
+    assert lossy.take_events() == [LinkEvent("cav1", "dropped")]
