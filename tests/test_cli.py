@@ -77,3 +77,24 @@ def test_binary_scenario_exits_2_from_the_real_command(tmp_path: Path, content: 
     assert r.returncode == 2, r.stderr
     assert "not a text (UTF-8) file" in r.stderr and "Traceback" not in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1
+
+
+def test_view_without_a_recording_is_a_clear_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["view", str(tmp_path / "nowhere")]) == 2
+    assert "no such run directory" in capsys.readouterr().err
+    assert main(["view", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "no recording.rrd" in err and "output.rerun: false" in err
+    (tmp_path / "recording.rrd").write_bytes(b"")
+    assert main(["view", str(tmp_path), "--screenshots", str(tmp_path / "s"), "--at", "1,x"]) == 2
+    assert "--at" in capsys.readouterr().err
+
+
+def test_view_without_a_display_prints_the_command(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    (tmp_path / "recording.rrd").write_bytes(b"")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    assert main(["view", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert f"rerun {tmp_path / 'recording.rrd'}" in out and "--screenshots" in out

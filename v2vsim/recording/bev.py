@@ -44,20 +44,30 @@ def probability_image(p: np.ndarray) -> np.ndarray:
     return np.take(_LUT, idx, axis=0)
 
 
+def _error_lut() -> np.ndarray:
+    """Class of every (predicted, visible, hidden, road, lane) combination, as bits 0..4 of an index."""
+    lut = np.zeros(32, np.uint8)
+    for code in range(32):
+        pred, visible, hidden, road, lane = ((code >> b) & 1 for b in range(5))
+        cls = 2 if lane else 1 if road else 0
+        if hidden:
+            cls = HIDDEN_PREDICTED if pred else HIDDEN
+        elif pred or visible:
+            cls = TP if pred and visible else FP if pred else FN
+        lut[code] = cls
+    return lut
+
+
+_ERROR_LUT = _error_lut()
+
+
 def error_image(p_vehicle: np.ndarray, gt: dict[str, np.ndarray]) -> np.ndarray:
-    """(H, W) uint8 ERROR_CLASSES ids of the thresholded prediction against the visible vehicles."""
-    pred = p_vehicle >= THRESHOLD
+    """(H, W) uint8 ERROR_CLASSES ids of the thresholded prediction against the visible vehicles
+    (a not-visible vehicle is one in `dynamic` but not in `visible`, which the IoU ignores)."""
     hidden = gt["dynamic"] & ~gt["visible"]
-    img = np.zeros(pred.shape, np.uint8)
-    img[gt["road"]] = 1
-    img[gt["lane"]] = 2
-    img[hidden] = HIDDEN
-    img[hidden & pred] = HIDDEN_PREDICTED
-    scored = ~hidden
-    img[scored & pred & gt["visible"]] = TP
-    img[scored & pred & ~gt["visible"]] = FP
-    img[scored & ~pred & gt["visible"]] = FN
-    return img
+    code = (p_vehicle >= THRESHOLD).view(np.uint8) | (gt["visible"].view(np.uint8) << 1)
+    code |= (hidden.view(np.uint8) << 2) | (gt["road"].view(np.uint8) << 3) | (gt["lane"].view(np.uint8) << 4)
+    return _ERROR_LUT[code]
 
 
 def vehicle_iou(p_vehicle: np.ndarray, gt: dict[str, np.ndarray]) -> float | None:

@@ -24,7 +24,8 @@ def eye_over(static: StaticMap) -> rrb.EyeControls3D:
                              kind="Orbital", tracking_entity="world/ego")
 
 
-def default_blueprint(methods: list[str], cameras: list[str], static: StaticMap) -> rrb.Blueprint:
+def default_blueprint(methods: list[str], cameras: list[str], static: StaticMap, method_tab: int = 0) -> rrb.Blueprint:
+    """method_tab: which of the method tabs is shown first (0 probability, 1 errors)."""
     world = rrb.Spatial3DView(origin="world", name="world (3D: x east, y north, z up)", eye_controls=eye_over(static))
     gt = rrb.Spatial2DView(origin="bev", contents=["bev/gt/**"], name="ground truth (BEV, ego heading up)")
     cams = rrb.Grid(*[rrb.Spatial2DView(origin=f"world/ego_cameras/{c}", name=f"ego camera: {c}") for c in cameras],
@@ -38,7 +39,8 @@ def default_blueprint(methods: list[str], cameras: list[str], static: StaticMap)
                            plot_legend=rrb.PlotLegend(corner="LeftBottom", visible=True)))
     left = rrb.Vertical(world, rrb.Horizontal(gt, cams, column_shares=[1, 1.3]), row_shares=[3, 2])
     right = rrb.Vertical(rrb.Tabs(_method_grid(methods, "probability", "vehicle probability"),
-                                  _method_grid(methods, "errors", "errors (TP green, FP red, FN blue)")),
+                                  _method_grid(methods, "errors", "errors (TP green, FP red, FN blue)"),
+                                  active_tab=method_tab),
                          plots, rrb.TextLogView(origin="log", name="fusion log"), row_shares=[5, 3, 1.2])
     return rrb.Blueprint(rrb.Horizontal(left, right, column_shares=[1.1, 1]),
-                         rrb.TimePanel(timeline="frame", play_state="paused"), collapse_panels=True)
+                         rrb.TimePanel(timeline="frame", play_state="paused", state="collapsed"), collapse_panels=True)

@@ -26,14 +26,13 @@ from v2vsim.geometry import BevGrid
 from v2vsim.perception import FusionInputs, Prediction
 from v2vsim.recording import bev, world3d
 from v2vsim.recording.blueprint import default_blueprint
-from v2vsim.recording.scan import Scan
+from v2vsim.recording.scan import Scan, jpeg
 from v2vsim.sensors.camera import camera_rig
 from v2vsim.world import StaticMap, WorldState
 
 BATCHING = rr.ChunkBatcherConfig(flush_tick=timedelta(seconds=30), flush_num_bytes=16 << 20, flush_num_rows=1 << 20)
 METHOD_PALETTE = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189),
                   (140, 86, 75), (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207)]
-JPEG_QUALITY = 85
 
 
 class Recorder:
@@ -85,7 +84,8 @@ class Recorder:
                                                 radii=0.4))
         for m, p in preds.items():
             veh = p.probs["vehicle"]
-            rec.log(f"bev/{m}/probability", rr.Image(bev.probability_image(veh)).compress(JPEG_QUALITY))
+            rec.log(f"bev/{m}/probability", rr.EncodedImage(contents=jpeg(bev.probability_image(veh)),
+                                                            media_type="image/jpeg"))
             rec.log(f"bev/{m}/errors", rr.SegmentationImage(bev.error_image(veh, gt)))
             # Always logged, empty when there are none, so last frame's boxes never linger.
             boxes = p.boxes if p.boxes is not None else np.zeros((0, 6), np.float32)
@@ -118,10 +118,10 @@ class Recorder:
             rec.log(f"world/lidar/{cav}", rr.Points3D(pts, colors=world3d.cav_colour(self.cavs, cav),
                                                            radii=rr.components.Radius.ui_points(1.5)))
         own = scans.get(self.ego)
-        if own is not None and own.images is not None:
+        if own is not None and own.jpegs is not None:
             for i, name in enumerate(self.rig.names):
                 rec.log(f"world/ego_cameras/{name}", world3d.camera_pose(self.rig, i, ego.pose),
-                        rr.Image(own.images[i]).compress(JPEG_QUALITY))
+                        rr.EncodedImage(contents=own.jpegs[i], media_type="image/jpeg"))
 
     def _log_links(self, links: list[LinkEvent]) -> None:
         for e in links:

@@ -16,7 +16,7 @@ from v2vsim.geometry import Pose
 from v2vsim.perception import FusionInputs, Prediction
 from v2vsim.recording import bev
 from v2vsim.recording.recorder import Recorder
-from v2vsim.recording.scan import Scan, image_shape
+from v2vsim.recording.scan import Scan, image_shape, jpeg
 from v2vsim.recording.world3d import OUTCOME_RGB
 from v2vsim.world import Actor, Building, StaticMap, WorldState
 
@@ -57,8 +57,8 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Recording:
         boxes = np.array([[5.0, 1.0, 4.5, 1.8, 0.3, 0.9]], np.float32) if k == 0 else np.zeros((0, 6), np.float32)
         preds = {"none": Prediction(maps, None, 1.0), "cobevt": Prediction(maps, boxes, 1.0)}
         links = [LinkEvent("c1", "delivered", 12.5)] if k == 0 else [LinkEvent("c1", "dropped")]
-        scans = {"ego": Scan("ego", k, rng.random((50, 3)).astype(np.float32),
-                             rng.integers(0, 255, image_shape(sc), dtype=np.uint8)),
+        cams = rng.integers(0, 255, image_shape(sc), dtype=np.uint8)
+        scans = {"ego": Scan("ego", k, rng.random((50, 3)).astype(np.float32), tuple(jpeg(im) for im in cams)),
                  "c1": Scan("c1", k, rng.random((40, 3)).astype(np.float32), None)}
         rec.log_frame(k, _world(k), _gt(), np.array([[5.0, 1.0, 4.5, 1.8, 0.3]]), preds,
                       FusionInputs(["ego", "c1"], np.zeros((2, 3), np.float32)), links, scans)

@@ -8,6 +8,7 @@ import struct
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from v2vsim.config import Scenario
 from v2vsim.geometry import Pose
@@ -36,9 +37,9 @@ def test_round_trip_and_size_bound() -> None:
     assert len(data) <= max_scan_bytes(sc)
     scan = decode_scan(data, "c1", sc)
     assert scan.frame == 7 and scan.sender == "c1" and np.array_equal(scan.points, pts)
-    assert scan.images.shape == imgs.shape
+    assert len(scan.jpegs) == 4 and all(Image.open(io.BytesIO(j)).size == imgs.shape[2:0:-1] for j in scan.jpegs)
     only = decode_scan(encode_scan(8, None, None), "c1", sc)
-    assert only.points is None and only.images is None
+    assert only.points is None and only.jpegs is None
 
 
 def _npz(**arrays: np.ndarray) -> bytes:
@@ -52,7 +53,10 @@ def _npz(**arrays: np.ndarray) -> bytes:
     encode_scan(1, np.zeros((MAX_POINTS + 1, 3), np.float32), None),
     struct.pack("<q", 1) + _npz(points=np.zeros((5, 3), np.float64)),  # encode_scan would cast it
     encode_scan(1, np.full((5, 3), np.nan, np.float32), None),
-    encode_scan(1, None, np.zeros((4, 10, 10, 3), np.uint8)),
+    encode_scan(1, None, np.zeros((3, 10, 10, 3), np.uint8)),  # three cameras, not four
+    struct.pack("<q", 1) + _npz(jpeg=np.zeros(40, np.uint8), jpeg_sizes=np.full(4, 10, np.int64)),  # not JPEG
+    struct.pack("<q", 1) + _npz(jpeg=np.zeros(40, np.uint8), jpeg_sizes=np.array([10, 10, 10, 11])),  # sizes
+    struct.pack("<q", 1) + _npz(jpeg=np.zeros(40, np.uint8)),  # no sizes
 ])
 def test_malformed_scans_are_refused(bad: bytes) -> None:
     with pytest.raises(ValueError, match="scan from c1"):
