@@ -255,6 +255,21 @@ def test_the_ego_stops_by_itself_when_the_driver_dies(monkeypatch: pytest.Monkey
     assert time.monotonic() - t0 >= 0.25
 
 
+def test_side_channels_are_bounded_and_not_counted_as_v2v() -> None:
+    """vis and scan (recording) messages longer than their bound are not kept, and, not being V2V
+    messages, never show up in comm.rejected; an oversized V2V message is counted."""
+    import struct
+
+    import agents.ego as ego_mod
+
+    box = ego_mod.Mailbox({"features": 100, "vis": 50, "scan": 64})
+    box.put("scan", "cav1", struct.pack("<q", 3) + b"x" * 100)
+    box.put("scan", "cav1", struct.pack("<q", 3) + b"x" * 10)
+    box.put("vis", "cav1", b"{" * 60)
+    box.put("features", "cav1", b"y" * 200)
+    assert list(box.raw) == [("scan", 3)] and box.rejected == [("features", "size_mismatch")]
+
+
 # ---- end to end, through a router ---------------------------------------------------------------
 
 
