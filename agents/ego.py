@@ -211,9 +211,8 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
                 stats.record_lost_agent(cav)
             with timer.stage("comm"):
                 inp, visible, scans = _collect(box, k, world, me, kinds, inboxes, ego_poses, decoder, args)
-                links = inboxes["features"].take_events()
-                for ib in inboxes.values():
-                    ib.take_events()
+                events = {kind: ib.take_events() for kind, ib in inboxes.items()}
+                links = events["features"]  # the message every method fuses: what the links show
                 inp.features = {s: decompress(compressor, v) for s, v in inp.features.items()}
             with timer.stage("ground_truth"):
                 gt = bev_ground_truth(world, me, sc.bev, visible, assets=assets)
