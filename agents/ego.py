@@ -521,7 +521,8 @@ def _collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str],
                 continue
             ego_then = ego_poses.get(msg.frame, ego_poses[k])
             send_time = now if realtime else msg.capture_time
-            inboxes[kind].offer(msg, len(data), send_time, distance(msg.sender_pose, ego_then.as_tuple()))
+            inboxes[kind].offer(msg, len(data), send_time, distance(msg.sender_pose, ego_then.as_tuple()),
+                                receiver_pose=ego_then.as_tuple(), world=world)  # geometry for comm.channel tr37885
     ego_pose = ego_poses[k]
     fusable = {kind: inboxes[kind].ready(now) for kind in kinds}
     senders = [me] + sorted({s for table in fusable.values() for s in table} - {me})

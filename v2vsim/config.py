@@ -153,6 +153,25 @@ class AuthConfig:
 
 
 @dataclass(frozen=True)
+class ChannelConfig:
+    """The radio channel (v2vsim/comm/tr37885.py). `disk`: delivered within comm.range_m, lost only by comm.drop.
+    `tr37885`: within comm.range_m, reception decided by the link budget over 3GPP TR 37.885 path loss with the
+    link state (los | nlos | nlosv) from the world's buildings and vehicles; serialisation at the MCS data rate
+    (capped by comm.bandwidth_mbps when that is lower). Defaults: TR 37.885 / IEEE 802.11p values (see tr37885.py)."""
+
+    model: Literal["disk", "tr37885"] = "disk"
+    scenario: Literal["urban", "highway"] = "urban"  # TR 37.885 Table 6.2.1-1 LOS formula and decorrelation distance
+    carrier_ghz: float = _f(5.9, "0.5..100 (GHz)", lambda v: 0.5 <= v <= 100)
+    tx_power_dbm: float = _f(23.0, "-50..60 (dBm)", lambda v: -50 <= v <= 60)
+    antenna_gain_dbi: float = _f(3.0, "-30..30 (dBi, each of the two antennas)", lambda v: -30 <= v <= 30)
+    noise_figure_db: float = _f(9.0, "0..30 (dB)", lambda v: 0 <= v <= 30)
+    bandwidth_mhz: float = _f(10.0, "5, 10 or 20 (MHz, an IEEE 802.11 OFDM channel width)", lambda v: v in (5, 10, 20))
+    mcs: int = _f(2, "0..7 (IEEE 802.11p MCS: BPSK 1/2 .. 64-QAM 3/4)", lambda v: 0 <= v <= 7)
+    antenna_height_m: float = _f(1.5, "> 0 (m above each vehicle's pose.z)", _pos)
+    per_slope_db: float = _f(1.0, ">= 0 (dB; logistic packet-error slope, 0 = a hard SNR threshold)", _nonneg)
+
+
+@dataclass(frozen=True)
 class CommConfig:
     range_m: float = _f(70.0, "> 0", _pos)
     latency_ms: LatencyConfig = field(default_factory=LatencyConfig)
@@ -163,6 +182,7 @@ class CommConfig:
     compression: Literal["none", "zlib"] = "none"
     channel_compression: int = _f(1, "1 (off) or a reduction ratio such as 8, 16, 32, 64", _pos)
     auth: AuthConfig = field(default_factory=AuthConfig)
+    channel: ChannelConfig = field(default_factory=ChannelConfig)
 
 
 @dataclass(frozen=True)

@@ -9,6 +9,11 @@ hash()), so the same scenario seed gives the same losses and delays in every pro
 run, and (a, b) and (b, a) are different links. Every `transmit` call draws the same number
 of variates whatever happens, so two runs that differ in, say, drop probability still share
 their jitter samples (common random numbers).
+
+comm.channel.model: `disk` (the default) delivers whatever is within comm.range_m unless the drop
+model loses it. `tr37885` (v2vsim/comm/tr37885.py) decides reception within range_m from the link
+budget, on its own random stream (stream 2), so the disk draws, and hence the jitter and drop
+samples, are the same under both models.
 """
 
 from __future__ import annotations
@@ -19,6 +24,8 @@ from typing import Literal, TypeVar
 
 import numpy as np
 
+from v2vsim.comm import tr37885
+from v2vsim.comm.tr37885 import LinkGeometry, LinkState
 from v2vsim.config import CommConfig, PoseNoiseConfig
 from v2vsim.geometry import Pose
 
@@ -30,12 +37,17 @@ _STALE_EPS_S = 1e-9  # so that an age of exactly max_age, off by float rounding,
 
 @dataclass(frozen=True)
 class Delivery:
-    """What the channel did with one message. arrival_time is inf when nothing arrives."""
+    """What the channel did with one message. arrival_time is inf when nothing arrives.
+
+    Under tr37885, `state` is the link state and `snr_db` the SNR of a message within range (a message lost
+    to a low SNR is "dropped"); both are None under disk and for messages out of range."""
 
     delivered: bool
     reason: Reason
     arrival_time: float
     send_time: float = 0.0
+    state: LinkState | None = None
+    snr_db: float | None = None
 
     @property
     def latency(self) -> float:
@@ -82,6 +94,13 @@ class LinkModel:
     Markov chain (good/bad) starting in good: a message is lost with loss_good or loss_bad in
     the current state, then the state moves good->bad with p_gb or bad->good with p_bg. The
     chain steps once per transmit call, in range or not (the radio channel evolves anyway).
+
+    Under comm.channel.model tr37885 a message within range_m must also pass the radio
+    (tr37885.receive: link state from `geometry`, path loss, correlated shadowing, SNR against
+    the MCS threshold); the drop model still applies on top (a loss the radio does not model,
+    e.g. congestion; p = 0 by default). Serialisation runs at the MCS data rate, or at
+    bandwidth_mbps where that is lower (the default 27 is the fastest MCS rate, so by default
+    the MCS rate decides; null leaves the MCS rate alone). The shadowing steps on every call.
     """
 
     def __init__(self, cfg: CommConfig, seed: int, sender: str, receiver: str, *, queueing: bool = False) -> None:
@@ -93,6 +112,13 @@ class LinkModel:
         self.pose_rng = np.random.Generator(np.random.PCG64(link_seed_sequence(seed, sender, receiver, 1)))
         self.bad_state = False
         self.busy_until = -math.inf
+        self.radio = cfg.channel.model == "tr37885"
+        self._radio_rng = np.random.Generator(np.random.PCG64(link_seed_sequence(seed, sender, receiver, 2)))
+        self.shadowing: tr37885.Shadowing | None = None
+        self.rate_mbps = cfg.bandwidth_mbps
+        if self.radio:
+            mcs_rate = tr37885.mcs_rate_mbps(cfg.channel.mcs, cfg.channel.bandwidth_mhz)
+            self.rate_mbps = mcs_rate if cfg.bandwidth_mbps is None else min(mcs_rate, cfg.bandwidth_mbps)
 
     def _jitter_s(self, u: float, z: float) -> float:
         lat = self.cfg.latency_ms
@@ -119,20 +145,35 @@ class LinkModel:
             return lost
         raise ValueError(f"unknown drop model {drop.model!r}")
 
-    def transmit(self, size_bytes: int, send_time: float, distance_m: float) -> Delivery:
-        """Decide the fate of one message of size_bytes sent at send_time over distance_m."""
+    def transmit(self, size_bytes: int, send_time: float, distance_m: float,
+                 geometry: LinkGeometry | None = None) -> Delivery:
+        """Decide the fate of one message of size_bytes sent at send_time over distance_m.
+
+        `geometry` (the two poses and the world at send time) is required under tr37885 and unused under disk."""
         u_state, u_loss, u_jit = self._rng.random(3)
         z_jit = self._rng.standard_normal()
         lost = self._lost(float(u_loss), float(u_state))
+        rx: tr37885.Reception | None = None
+        if self.radio:
+            if geometry is None:
+                raise ValueError("comm.channel.model tr37885 needs the link geometry (sender and receiver poses)")
+            z_shadow, z_block = self._radio_rng.standard_normal(2)
+            u_rx = float(self._radio_rng.random())
+            ch = self.cfg.channel
+            self.shadowing = tr37885.step_shadowing(self.shadowing, geometry, tr37885.DECORRELATION_M[ch.scenario],
+                                                    float(z_shadow))
+            if distance_m <= self.cfg.range_m:  # the geometry is only looked at within range
+                rx = tr37885.receive(ch, geometry, self.shadowing, float(z_block), u_rx, (self.sender, self.receiver))
         if not distance_m <= self.cfg.range_m:  # NaN distance counts as out of range
             return Delivery(False, "out_of_range", math.inf, send_time)
-        ser = serialisation_delay(size_bytes, self.cfg.bandwidth_mbps)
+        ser = serialisation_delay(size_bytes, self.rate_mbps)
         start = max(send_time, self.busy_until) if self.queueing else send_time
         self.busy_until = start + ser
-        if lost:
-            return Delivery(False, "dropped", math.inf, send_time)
+        state, snr = (rx.state, rx.snr_db) if rx is not None else (None, None)
+        if lost or (rx is not None and not rx.received):
+            return Delivery(False, "dropped", math.inf, send_time, state, snr)
         base = max(0.0, self.cfg.latency_ms.mean / 1000.0 + self._jitter_s(float(u_jit), float(z_jit)))
-        return Delivery(True, "ok", start + ser + base, send_time)
+        return Delivery(True, "ok", start + ser + base, send_time, state, snr)
 
     def noisy_pose(self, pose: PoseT) -> PoseT:
         """The sender pose as the receiver will use it, with this link's pose-noise stream."""

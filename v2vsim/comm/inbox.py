@@ -15,7 +15,9 @@ from typing import Literal
 from v2vsim.comm.channel import LinkModel, is_stale
 from v2vsim.comm.codec import Message
 from v2vsim.comm.stats import CommStats
+from v2vsim.comm.tr37885 import LinkGeometry
 from v2vsim.config import CommConfig
+from v2vsim.world import WorldState
 
 
 @dataclass(frozen=True)
@@ -52,6 +54,8 @@ class Inbox:
         self.receiver = receiver
         self.kind = kind
         self.stats = stats if stats is not None else CommStats()
+        if cfg.channel.model == "tr37885":
+            self.stats.track_link_states()  # metrics.json gains los/nlos/nlosv even if nothing comes in range
         self._links: dict[str, LinkModel] = {}
         self._pending: dict[str, list[Arrival]] = {}
         self._latest: dict[str, Arrival] = {}  # the newest fused-or-fusable message per sender
@@ -64,15 +68,24 @@ class Inbox:
             self._links[sender] = LinkModel(self.cfg, self.seed, sender, self.receiver)
         return self._links[sender]
 
-    def offer(self, msg: Message, size: int, send_time: float, distance_m: float) -> None:
-        """A message came off the transport: decide its fate on the link and queue it if it arrives."""
+    def offer(self, msg: Message, size: int, send_time: float, distance_m: float, *,
+              receiver_pose: tuple[float, ...] | None = None, world: WorldState | None = None) -> None:
+        """A message came off the transport: decide its fate on the link and queue it if it arrives.
+
+        Under comm.channel.model tr37885 the link also needs the receiver's pose when the message was sent (the
+        sender's is msg.sender_pose) and the world whose buildings and vehicles may block it; disk ignores both."""
         if msg.sender_id == self.receiver:
             self._pending.setdefault(msg.sender_id, []).append(Arrival(msg, size, send_time))
             return
         self.bytes_this_frame += size  # what crossed the air; the receiver's own message did not
         self.stats.record_sent(size)
-        d = self.link(msg.sender_id).transmit(size, send_time, distance_m)
-        self.stats.record_channel(d)
+        geometry = None
+        if self.cfg.channel.model == "tr37885":
+            if receiver_pose is None:
+                raise ValueError("comm.channel.model tr37885: Inbox.offer needs receiver_pose")
+            geometry = LinkGeometry(tuple(msg.sender_pose), tuple(receiver_pose), world)
+        d = self.link(msg.sender_id).transmit(size, send_time, distance_m, geometry)
+        self.stats.record_channel(d, distance_m)
         if d.delivered:
             self._pending.setdefault(msg.sender_id, []).append(Arrival(msg, size, d.arrival_time, d.latency))
             self._events[msg.sender_id] = LinkEvent(msg.sender_id, "in_flight", d.latency * 1e3)

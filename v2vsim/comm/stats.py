@@ -9,18 +9,26 @@ Semantics, so that senders and receivers in different processes can be merged:
   stale       delivered messages older than max_age_ms when the receiver would fuse them;
   rejected    received bytes that failed codec validation (by reason);
   latency     send-to-fuse time of fused messages, in the run's clock.
+Under comm.channel.model tr37885 (only then; disk output is unchanged) also:
+  los, nlos, nlosv       messages within range by link state (delivered or not);
+  delivery_by_distance   per link state and DISTANCE_BIN_M-wide bin of the sender-receiver distance
+                         ("0-25", "25-50", ...): {"sent", "delivered", "ratio"} of those messages.
 Not thread-safe: update it from the one thread that consumes messages.
 """
 
 from __future__ import annotations
 
 import json
+import math
 from collections import Counter
 from typing import Any
 
 import numpy as np
 
 from v2vsim.comm.channel import Delivery
+from v2vsim.comm.tr37885 import LINK_STATES
+
+DISTANCE_BIN_M = 25.0  # width of the delivery_by_distance bins (m)
 
 
 class CommStats:
@@ -36,6 +44,8 @@ class CommStats:
         self.bytes_sent = 0
         self.latency_s: list[float] = []
         self.lost_agents: set[str] = set()
+        self.link_states: Counter[str] | None = None  # None: no link states (disk); see track_link_states
+        self.by_distance: Counter[tuple[str, int, bool]] = Counter()  # (state, bin, delivered) -> messages
 
     @property
     def rejected(self) -> int:
@@ -46,14 +56,24 @@ class CommStats:
         self.sent += copies
         self.bytes_sent += nbytes * copies
 
-    def record_channel(self, d: Delivery) -> None:
-        """Count the channel model's verdict on one message."""
+    def track_link_states(self) -> Counter[str]:
+        """Report link states (los/nlos/nlosv and delivery_by_distance) even while none has been counted."""
+        if self.link_states is None:
+            self.link_states = Counter()
+        return self.link_states
+
+    def record_channel(self, d: Delivery, distance_m: float | None = None) -> None:
+        """Count the channel model's verdict on one message (sent over distance_m, for the distance bins)."""
         if d.delivered:
             self.delivered += 1
         elif d.reason == "dropped":
             self.dropped += 1
         else:
             self.out_of_range += 1
+        if d.state is not None:
+            self.track_link_states()[d.state] += 1
+            if distance_m is not None and math.isfinite(distance_m):
+                self.by_distance[(d.state, int(max(distance_m, 0.0) // DISTANCE_BIN_M), d.delivered)] += 1
 
     def record_stale(self) -> None:
         self.stale += 1
@@ -79,6 +99,9 @@ class CommStats:
         self.bytes_sent += other.bytes_sent
         self.latency_s.extend(other.latency_s)
         self.lost_agents |= other.lost_agents
+        if other.link_states is not None:
+            self.track_link_states().update(other.link_states)
+        self.by_distance.update(other.by_distance)
         return self
 
     def latency_percentile_ms(self, q: float) -> float | None:
@@ -90,9 +113,19 @@ class CommStats:
     def bytes_per_message(self) -> int:
         return round(self.bytes_sent / self.sent) if self.sent else 0
 
+    def delivery_by_distance(self) -> dict[str, dict[str, dict[str, Any]]]:
+        """{state: {"lo-hi": {"sent", "delivered", "ratio"}}} over the distance bins that saw a message."""
+        out: dict[str, dict[str, dict[str, Any]]] = {s: {} for s in LINK_STATES}
+        bins = sorted({(s, b) for s, b, _ in self.by_distance}, key=lambda k: (LINK_STATES.index(k[0]), k[1]))
+        for state, b in bins:
+            ok, lost = self.by_distance[(state, b, True)], self.by_distance[(state, b, False)]
+            lo, hi = b * DISTANCE_BIN_M, (b + 1) * DISTANCE_BIN_M
+            out[state][f"{lo:g}-{hi:g}"] = {"sent": ok + lost, "delivered": ok, "ratio": round(ok / (ok + lost), 4)}
+        return out
+
     def to_json(self) -> dict[str, Any]:
-        """The metrics.json `comm` object (contract keys first, then extras)."""
-        return {
+        """The metrics.json `comm` object (contract keys first, then extras; link states only under tr37885)."""
+        doc: dict[str, Any] = {
             "sent": self.sent,
             "delivered": self.delivered,
             "dropped": self.dropped,
@@ -105,13 +138,19 @@ class CommStats:
             "rejected_reasons": dict(sorted(self.rejected_reasons.items())),
             "lost_agents": sorted(self.lost_agents),
         }
+        if self.link_states is not None:
+            doc.update({s: self.link_states[s] for s in LINK_STATES})
+            doc["delivery_by_distance"] = self.delivery_by_distance()
+        return doc
 
     def to_state(self) -> dict[str, Any]:
         """Everything, raw samples included, as plain JSON types (to ship to another process)."""
         return {"sent": self.sent, "delivered": self.delivered, "dropped": self.dropped,
                 "out_of_range": self.out_of_range, "stale": self.stale,
                 "rejected_reasons": dict(self.rejected_reasons), "bytes_sent": self.bytes_sent,
-                "latency_s": list(self.latency_s), "lost_agents": sorted(self.lost_agents)}
+                "latency_s": list(self.latency_s), "lost_agents": sorted(self.lost_agents),
+                "link_states": None if self.link_states is None else dict(self.link_states),
+                "by_distance": [[s, b, ok, n] for (s, b, ok), n in sorted(self.by_distance.items())]}
 
     @classmethod
     def from_state(cls, state: dict[str, Any]) -> CommStats:
@@ -122,6 +161,9 @@ class CommStats:
         s.bytes_sent = int(state["bytes_sent"])
         s.latency_s = [float(v) for v in state["latency_s"]]
         s.lost_agents = set(state["lost_agents"])
+        if state.get("link_states") is not None:  # absent in states written before tr37885
+            s.link_states = Counter({str(k): int(v) for k, v in state["link_states"].items()})
+        s.by_distance = Counter({(str(st), int(b), bool(ok)): int(n) for st, b, ok, n in state.get("by_distance", [])})
         return s
 
     def __repr__(self) -> str:

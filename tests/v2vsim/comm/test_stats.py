@@ -54,3 +54,30 @@ def test_merge_and_state_round_trip() -> None:
     j = merged.to_json()
     assert (j["sent"], j["delivered"], j["rejected"], j["bytes_per_message"]) == (2, 1, 1, 1000)
     assert j["latency_ms"]["p50"] == pytest.approx(100.0)
+    assert "los" not in j and "delivery_by_distance" not in j  # disk: no link-state keys
+
+
+def test_link_states_merge_and_state_round_trip() -> None:
+    a, b = CommStats(), CommStats()
+    a.record_channel(Delivery(True, "ok", 0.1, 0.0, "los", 30.0), 10.0)
+    a.record_channel(Delivery(False, "dropped", float("inf"), 0.0, "nlos", 2.0), 30.0)
+    a.record_channel(Delivery(False, "out_of_range", float("inf")), 90.0)  # no state: not in the bins
+    b.record_channel(Delivery(True, "ok", 0.1, 0.0, "los", 20.0), 24.9)
+    b.record_channel(Delivery(True, "ok", 0.1, 0.0, "nlosv", 9.0), 49.0)
+    b.record_channel(Delivery(False, "dropped", float("inf"), 0.0, "nlosv", 1.0), 26.0)
+    old = a.to_state()
+    del old["link_states"], old["by_distance"]  # a state written before tr37885
+    assert "los" not in CommStats.from_state(old).to_json()
+    merged = CommStats.from_state(json.loads(json.dumps(a.to_state()))).merge(CommStats.from_state(b.to_state()))
+    j = merged.to_json()
+    assert (j["los"], j["nlos"], j["nlosv"], j["out_of_range"]) == (2, 1, 2, 1)
+    assert j["delivery_by_distance"] == {
+        "los": {"0-25": {"sent": 2, "delivered": 2, "ratio": 1.0}},
+        "nlos": {"25-50": {"sent": 1, "delivered": 0, "ratio": 0.0}},
+        "nlosv": {"25-50": {"sent": 2, "delivered": 1, "ratio": 0.5}},
+    }
+    tracked = CommStats()
+    tracked.track_link_states()
+    assert (tracked.to_json()["los"], tracked.to_json()["delivery_by_distance"]["los"]) == (0, {})
+    assert "los" in CommStats().merge(tracked).to_json()
+    json.dumps(j)
