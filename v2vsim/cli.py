@@ -136,6 +136,14 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_sweep(args: argparse.Namespace) -> int:
+    from v2vsim.study.sweep import SweepArgs, sweep
+
+    return sweep(SweepArgs(scenario=Path(args.scenario), grid=tuple(args.grid), seeds=args.seeds, out=Path(args.out),
+                           frames=args.frames, jobs=args.jobs, overrides=tuple(args.overrides), methods=args.methods,
+                           bootstrap=args.bootstrap))
+
+
 def _cmd_view(args: argparse.Namespace) -> int:
     from v2vsim.recording.view import ViewError, find_recording, open_viewer, screenshots
 
@@ -213,6 +221,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lr", type=float, default=None, help="override the stage's default (peak, one-cycle)")
     p.add_argument("--val-samples", type=int, default=None, help="validation samples after each epoch")
     p.set_defaults(func=_cmd_train)
+
+    p = sub.add_parser("sweep", help="run a scenario over a grid of overrides x seeds: sweep.csv/json/md, plots "
+                       "with 95%% bootstrap intervals")
+    _scenario_args(p)
+    p.add_argument("--grid", action="append", default=[], metavar="KEY.PATH=V1,V2,...",
+                   help="a swept key and its values, parsed like --set (repeatable: the Cartesian product)")
+    p.add_argument("--seeds", required=True, help="seeds, A-B (inclusive) or A; the same seeds at every point")
+    p.add_argument("--frames", type=int, default=None, help="frames per run (default: duration_s * rate_hz)")
+    p.add_argument("--methods", default=None, help="comma-separated fusion methods, e.g. none,cobevt")
+    p.add_argument("--jobs", type=int, default=1,
+                   help="runs at a time (default 1); one run keeps about 2 cores busy (its processes)")
+    p.add_argument("--bootstrap", type=int, default=1000, metavar="B", help="bootstrap resamples (default 1000)")
+    p.add_argument("--out", required=True, help="sweep directory (resumable: complete runs there are reused)")
+    p.set_defaults(func=_cmd_sweep)
 
     p = sub.add_parser("models", help="list every encoder and fusion method: parameters, stage shapes")
     p.add_argument("--preset", choices=["tiny", "paper"], default="tiny")

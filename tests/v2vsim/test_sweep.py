@@ -1,0 +1,398 @@
+"""`v2vsim sweep`: grid parsing and validation, the paired design and resumability (with fake runs), the
+two-level bootstrap's coverage, per-frame values from a recording, and one real two-point sweep."""
+
+from __future__ import annotations
+
+import csv
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from v2vsim.cli import main
+from v2vsim.config import ConfigError, parse_override
+from v2vsim.study import runs as runs_mod
+from v2vsim.study.grid import base_overrides, parse_axes, parse_axis, parse_seeds, split_values
+from v2vsim.study.stats import interval, paired_clusters
+from v2vsim.study.sweep import SweepArgs, prepare, sweep
+
+REPO = Path(__file__).resolve().parents[2]
+SCENARIO = REPO / "scenarios" / "intersection.yaml"
+CONTRACT_METRICS = ["iou_vehicle", "iou_vehicle_frame_mean", "iou_road", "iou_lane", "ap50", "ap70", "fusion_ms",
+                    "bytes_per_frame"]
+
+
+# ---- grid and seeds ------------------------------------------------------------------------------------
+
+
+def test_grid_values_are_parsed_exactly_like_set() -> None:
+    assert split_values("0, 0.5,[none, cobevt],{a: 1, b: 2},'x,y'") == ["0", "0.5", "[none, cobevt]",
+                                                                       "{a: 1, b: 2}", "'x,y'"]
+    axis = parse_axis("comm.latency_ms.mean=0,50,1e2,null")
+    assert axis.key == "comm.latency_ms.mean" and axis.texts == ("0", "50", "1e2", "null")
+    assert list(axis.values) == [parse_override(f"k={t}")[1] for t in axis.texts]
+    assert parse_axis("perception.methods=[none, cobevt],[none]").values == (["none", "cobevt"], ["none"])
+    assert parse_axis("comm.drop.p=0,0.5").numeric and not parse_axis("output.rerun=true,false").numeric
+
+
+@pytest.mark.parametrize("text, expect", [
+    ("comm.drop.p", "expected KEY.PATH=V1,V2"), ("comm.drop.p=", "expected KEY.PATH=V1,V2"),
+    ("comm.drop.p=0,,1", "empty value"), ("comm.drop.p=0,0", "listed twice"),
+    ("comm..p=0", "bad key path"), ("seed=1,2", "use --seeds"), ("comm.drop.p=[0", "not valid YAML"),
+])
+def test_bad_grid_options_are_named(text: str, expect: str) -> None:
+    with pytest.raises(ConfigError, match="--grid") as e:
+        parse_axis(text)
+    assert expect in str(e.value)
+
+
+def test_seeds() -> None:
+    assert parse_seeds("0-3") == [0, 1, 2, 3] and parse_seeds("7") == [7] and parse_seeds(" 2 - 2 ") == [2]
+    for bad in ("3-1", "a", "-1", "1,2", ""):
+        with pytest.raises(ConfigError, match="--seeds"):
+            parse_seeds(bad)
+
+
+def _exit_2(argv: list[str], capsys: pytest.CaptureFixture[str], *expect: str) -> None:
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "Traceback" not in err, err
+    for e in expect:
+        assert e in err, err
+
+
+def test_a_bad_key_or_value_exits_2_naming_it_before_anything_runs(tmp_path: Path,
+                                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "sweep"
+    base = ["sweep", str(SCENARIO), "--seeds", "0-1", "--out", str(out)]
+    _exit_2([*base, "--grid", "comm.drop.p=0,0.5", "--grid", "comm.dorp.p=0,0.5"], capsys, "comm.dorp",
+            "unknown key", "did you mean 'drop'")
+    _exit_2([*base, "--grid", "comm.drop.p=0,1.5"], capsys, "comm.drop.p", "1.5", "0..1")  # the 2nd point only
+    _exit_2([*base, "--grid", "comm.drop.p=0", "--set", "comm.drop.p=0.2"], capsys, "also swept by --grid")
+    _exit_2([*base, "--grid", "comm.drop.p=0", "--grid", "comm.drop.p=1"], capsys, "given twice")
+    _exit_2([*base, "--grid", "comm.drop.p=0", "--set", "seed=3"], capsys, "use --seeds")
+    _exit_2([*base, "--grid", "comm.drop.p=0", "--frames", "0"], capsys, "--frames 0")
+    _exit_2([*base, "--grid", "comm.drop.p=0", "--methods", "none,cobev"], capsys, "perception.methods")
+    assert not (out / "runs").exists()
+
+
+# ---- the design and resumability, with the run step replaced by a fake ------------------------------------
+
+
+def test_cartesian_product_with_the_same_seeds_at_every_point(tmp_path: Path) -> None:
+    d = prepare(SweepArgs(SCENARIO, ("comm.drop.p=0,0.5", "comm.latency_ms.mean=0,50,100"), "3-4", tmp_path,
+                          frames=2, overrides=("cavs.count=2",), methods="none,cobevt"))
+    assert len(d.points) == 6 and len({p.pid for p in d.points}) == 6
+    assert [p.texts for p in d.points][:3] == [("0", "0"), ("0", "50"), ("0", "100")]  # last key fastest
+    assert len(d.specs) == 12 and len({s.out for s in d.specs}) == 12
+    for p in d.points:
+        specs = [s for s in d.specs if s.point == p]
+        assert [s.seed for s in specs] == [3, 4]  # paired: every point has the same seeds
+        for s in specs:
+            assert s.request["overrides"][:3] == [f"seed={s.seed}", f"comm.drop.p={p.texts[0]}",
+                                                  f"comm.latency_ms.mean={p.texts[1]}"]
+            assert s.request["config"]["seed"] == s.seed and s.request["config"]["output"]["rerun"] is False
+            argv = s.argv(d.scenario)
+            assert argv[:3] == ["-m", "v2vsim.cli", "run"] and argv[-2:] == ["--frames", "2"]
+    assert base_overrides([], ["output.rerun=true"], None) == ["output.rerun=true"]  # the user's say wins
+    assert base_overrides(parse_axes(["output.rerun=true,false"]), [], None) == []
+    assert base_overrides([], [], "none,late") == ["output.rerun=false", "perception.methods=[none,late]"]
+
+
+def _fake_metrics(spec: runs_mod.RunSpec) -> dict:
+    p = float(spec.point.texts[0]) if spec.point.texts else 0.5  # comm.drop.p
+    methods = {}
+    for i, m in enumerate(("none", "attfuse", "cobevt")):
+        iou = 0.4 + 0.1 * i * (1 - p) + 0.01 * spec.seed
+        methods[m] = {"iou_vehicle": iou, "iou_vehicle_frame_mean": iou - 0.01, "iou_road": 0.7, "iou_lane": None,
+                      "ap50": iou + 0.2, "ap70": iou, "fusion_ms": 1.0 + i, "bytes_per_frame": 1000 * i,
+                      "frames": 2, "iou_vehicle_all": iou - 0.05}
+    return {"scenario": "intersection", "frames": 2, "status": "complete", "methods": methods}
+
+
+class FakeJob:
+    """A run that has finished by the time it is polled: writes what `v2vsim run` would."""
+
+    def __init__(self, spec: runs_mod.RunSpec, code: int = 0, status: str = "complete") -> None:
+        self.code = code
+        self.interrupted = False
+        (spec.out / runs_mod.LOG).write_text("v2vsim: run abc: 2 CAVs\nTraceback ...\nValueError: boom\n"
+                                             if code else "v2vsim: done\n")
+        if status:
+            spec.out.joinpath("metrics.json").write_text(json.dumps(_fake_metrics(spec) | {"status": status}))
+
+    def poll(self) -> int | None:
+        return self.code
+
+    def interrupt(self) -> None:
+        self.interrupted = True
+
+    def kill(self) -> None:
+        pass
+
+
+class FakeStarter:
+    def __init__(self, fail: set[tuple[str, int]] = frozenset(), partial: set[tuple[str, int]] = frozenset(),
+                 interrupt_at: int | None = None) -> None:
+        self.started: list[tuple[str, int]] = []
+        self.fail, self.partial, self.interrupt_at = fail, partial, interrupt_at
+
+    def __call__(self, spec: runs_mod.RunSpec) -> FakeJob:
+        key = (spec.point.texts[0] if spec.point.texts else "", spec.seed)
+        if self.interrupt_at is not None and len(self.started) == self.interrupt_at:
+            raise KeyboardInterrupt
+        self.started.append(key)
+        if key in self.fail:
+            return FakeJob(spec, code=1, status="")
+        return FakeJob(spec, status="interrupted after 1 frames" if key in self.partial else "complete")
+
+
+def _args(out: Path, *extra: str, grid: tuple[str, ...] = ("comm.drop.p=0,0.5",), seeds: str = "0-2",
+          bootstrap: int = 200) -> SweepArgs:
+    return SweepArgs(SCENARIO, grid, seeds, out, frames=2, overrides=("cavs.count=2", *extra), bootstrap=bootstrap)
+
+
+def _csv(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_fake_sweep_resumes_reruns_what_is_not_complete_and_reports_failures(tmp_path: Path,
+                                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    import io
+
+    from v2vsim.study import plots
+
+    monkeypatch.setattr(runs_mod.time, "sleep", lambda s: None)
+    real_plot_all = plots.plot_all
+    monkeypatch.setattr(plots, "plot_all", lambda *a, **k: [])  # plotted in the last sweep only (time)
+    out = tmp_path / "sweep"
+    start = FakeStarter(fail={("0.5", 1)}, partial={("0", 2)})
+    log = io.StringIO()
+    assert sweep(_args(out), start=start, stream=log) == 1  # one run failed: exit 1, the others went on
+    assert len(start.started) == 6
+    text = log.getvalue()
+    assert "[comm.drop.p=0.5] seed 1 failed (exit code 1, no metrics.json)" in text and "ValueError: boom" in text
+    assert "[comm.drop.p=0] seed 2 failed (exit code 0, status 'interrupted after 1 frames')" in text
+    assert "v2vsim sweep: 6/6 runs (2 failed), 0 running" in text and "ETA" in text
+    rows = _csv(out / "sweep.csv")
+    assert list(rows[0])[:3 + len(CONTRACT_METRICS)] == ["comm.drop.p", "seed", "method", *CONTRACT_METRICS]
+    assert len(rows) == 4 * 3  # 4 complete runs x 3 methods
+    doc = json.loads((out / "sweep.json").read_text())
+    assert sorted((f["point"], f["seed"], f["code"]) for f in doc["runs"]["failed"]) == [
+        ("comm.drop.p=0", 2, 0), ("comm.drop.p=0.5", 1, 1)]
+
+    # resumed: only the two that did not complete run again; complete ones are reused
+    start2 = FakeStarter()
+    log = io.StringIO()
+    assert sweep(_args(out), start=start2, stream=log) == 0
+    assert sorted(start2.started) == [("0", 2), ("0.5", 1)]
+    assert "4 reused" in log.getvalue()
+    rows = _csv(out / "sweep.csv")
+    assert len(rows) == 6 * 3
+    assert [(r["comm.drop.p"], r["seed"]) for r in rows[::3]] == [("0", "0"), ("0", "1"), ("0", "2"),
+                                                                  ("0.5", "0"), ("0.5", "1"), ("0.5", "2")]
+    # the same settings spelled otherwise: nothing reruns; other settings: everything does
+    start3 = FakeStarter()
+    assert sweep(_args(out, "output.rerun=false"), start=start3, stream=io.StringIO()) == 0 and not start3.started
+    monkeypatch.setattr(plots, "plot_all", real_plot_all)
+    assert sweep(_args(out, "comm.range_m=50"), start=start3, stream=io.StringIO()) == 0 and len(start3.started) == 6
+
+    doc = json.loads((out / "sweep.json").read_text())
+    assert doc["seeds"] == [0, 1, 2] and doc["frames"] == 2 and doc["grid"][0]["values"] == [0, 0.5]
+    assert doc["methods"] == ["none", "attfuse", "cobevt"] and len(doc["rows"]) == 18
+    st = next(s for s in doc["stats"] if s["metric"] == "iou_vehicle" and s["point"] == {"comm.drop.p": 0})
+    assert st["resampled"] == "seeds" and st["methods"]["cobevt"]["seeds"] == 3
+    diffs = {(x["a"], x["b"]): x for x in st["differences"]}
+    assert set(diffs) == {("attfuse", "none"), ("cobevt", "none"), ("cobevt", "attfuse")}
+    assert diffs[("cobevt", "none")]["mean"] == pytest.approx(0.2)  # paired: the seed effect cancels
+    assert diffs[("cobevt", "none")]["lo"] == pytest.approx(0.2) and diffs[("cobevt", "none")]["excludes_zero"]
+    md = (out / "sweep.md").read_text()
+    assert "## comm.drop.p" in md and "| cobevt - none |" in md and "+0.200 [0.200, 0.200] **\\***" in md
+    for m in ("iou_vehicle", "iou_vehicle_frame_mean", "ap50", "ap70"):
+        assert (out / f"sweep_comm.drop.p_{m}.png").stat().st_size > 5000
+
+
+def test_two_keys_and_ctrl_c_keeps_what_finished(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import io
+
+    monkeypatch.setattr(runs_mod.time, "sleep", lambda s: None)
+    out = tmp_path / "sweep"
+    args = _args(out, grid=("comm.drop.p=0,0.5", "comm.latency_ms.mean=0,100"), seeds="0-1")
+    start = FakeStarter(interrupt_at=5)
+    log = io.StringIO()
+    assert sweep(args, start=start, stream=log) == 130
+    assert "interrupted" in log.getvalue() and len(start.started) == 5
+    doc = json.loads((out / "sweep.json").read_text())
+    assert doc["interrupted"] and doc["runs"]["complete"] == 5 and len(_csv(out / "sweep.csv")) == 5 * 3
+    md = (out / "sweep.md").read_text()
+    assert "## comm.latency_ms.mean" in md and "at comm.drop.p=0.5" in md and "at comm.latency_ms.mean=100" in md
+    assert (out / "sweep_comm.latency_ms.mean_ap70.png").is_file()
+    from v2vsim.study import plots
+
+    monkeypatch.setattr(plots, "plot_all", lambda *a, **k: [])
+    start = FakeStarter()
+    assert sweep(args, start=start, stream=io.StringIO()) == 0 and len(start.started) == 3  # 8 runs, 5 kept
+
+
+class SlowStarter(FakeStarter):
+    """Runs that take a few polls each; records how many run at once."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.live: list[FakeJob] = []
+        self.most = 0
+
+    def __call__(self, spec: runs_mod.RunSpec) -> FakeJob:
+        job = super().__call__(spec)
+        polls = iter([None, None, 0])
+        job.poll = lambda: self._poll(job, polls)  # type: ignore[method-assign]
+        self.live.append(job)
+        self.most = max(self.most, len(self.live))
+        return job
+
+    def _poll(self, job: FakeJob, polls: object) -> int | None:
+        code = next(polls, 0)  # type: ignore[call-overload]
+        if code is not None and job in self.live:
+            self.live.remove(job)
+        return code
+
+
+def test_jobs_caps_the_runs_at_a_time_and_no_grid_is_one_point(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import io
+
+    from v2vsim.study import plots
+
+    monkeypatch.setattr(runs_mod.time, "sleep", lambda s: None)
+    monkeypatch.setattr(plots, "plot_all", lambda *a, **k: [])
+    start = SlowStarter()
+    args = SweepArgs(SCENARIO, ("comm.drop.p=0,0.5,1",), "0-3", tmp_path / "a", frames=2, jobs=3)
+    assert sweep(args, start=start, stream=io.StringIO()) == 0
+    assert len(start.started) == 12 and start.most == 3
+    start = SlowStarter()
+    args = SweepArgs(SCENARIO, (), "0-1", tmp_path / "b", frames=2, overrides=("comm.drop.p=0.5",))
+    assert sweep(args, start=start, stream=io.StringIO()) == 0 and start.most == 1
+    assert (tmp_path / "b" / "runs" / "base" / "seed1" / "metrics.json").is_file()
+    assert list(_csv(tmp_path / "b" / "sweep.csv")[0])[:2] == ["seed", "method"]
+    md = (tmp_path / "b" / "sweep.md").read_text()
+    assert "## Results" in md and "| (no grid) |" in md
+    assert "lane IoU" not in md  # null in every run: no table
+
+
+# ---- statistics ------------------------------------------------------------------------------------------
+
+
+def _ar1(rng: np.random.Generator, n: int, sd: float, phi: float) -> np.ndarray:
+    x = np.empty(n)
+    x[0] = rng.normal(0, sd)
+    for t in range(1, n):
+        x[t] = phi * x[t - 1] + rng.normal(0, sd * np.sqrt(1 - phi**2))
+    return x
+
+
+@pytest.mark.parametrize("frames", [20, 1])  # seeds and frames; seeds only (whole-run metrics)
+def test_bootstrap_intervals_cover_the_true_difference_at_about_the_stated_rate(frames: int) -> None:
+    """200 synthetic paired studies: 10 seeds with a per-seed effect, correlated frames within a seed."""
+    rng = np.random.default_rng(2024)
+    true, hits, studies = 0.05, 0, 200
+    for i in range(studies):
+        a, b = [], []
+        for _ in range(10):
+            seed_effect = rng.normal(0, 0.04)
+            base = rng.uniform(0.3, 0.6) + _ar1(rng, frames, 0.08, 0.5)  # shared by both methods (paired)
+            b.append(dict(enumerate(base)))
+            a.append(dict(enumerate(base + true + seed_effect + _ar1(rng, frames, 0.1, 0.5))))
+        iv = interval(paired_clusters(a, b), b=500, label=f"study{i}")
+        assert iv is not None and iv.seeds == 10 and iv.frames == 10 * frames
+        hits += iv.lo <= true <= iv.hi
+    assert 0.9 <= hits / studies <= 0.99, hits / studies
+
+
+def test_interval_edge_cases() -> None:
+    assert interval([]) is None and interval([[np.nan]]) is None
+    one = interval([[0.3]])
+    assert one is not None and one.mean == 0.3 and one.lo is None and one.excludes_zero is None
+    iv = interval([[0.1, 0.2, 0.3], [0.5]], b=300, label="x")
+    assert iv is not None and iv.mean == pytest.approx((0.2 + 0.5) / 2)  # every seed weighs the same
+    assert iv == interval([[0.1, 0.2, 0.3], [0.5]], b=300, label="x")  # a fixed RNG: reproducible
+    assert paired_clusters([{0: 0.5, 1: 0.6, 3: 0.1}, {}], [{1: 0.4, 3: 0.2, 4: 0.9}, {0: 1.0}])[0].tolist() == \
+        pytest.approx([0.2, -0.1])  # only frames both methods scored
+
+
+def test_vehicle_iou_is_resampled_over_frames_when_every_run_has_them(tmp_path: Path) -> None:
+    from v2vsim.study.grid import points
+    from v2vsim.study.rows import Row
+    from v2vsim.study.summary import point_stats
+
+    (pt,) = points(parse_axes(["comm.drop.p=0"]))
+    rows = []
+    for seed in range(4):
+        for m, shift in (("none", 0.0), ("cobevt", 0.1)):
+            per_frame = {f: 0.4 + shift + 0.05 * np.sin(f + seed) for f in range(6) if (m, f) != ("none", 5)}
+            metrics = {"iou_vehicle_frame_mean": float(np.mean(list(per_frame.values()))), "ap70": 0.5 + shift}
+            rows.append(Row(pt, seed, m, metrics, tmp_path, per_frame))
+    (fm,) = point_stats(rows, [pt], "iou_vehicle_frame_mean", 300, 0)
+    assert fm.level == "seeds and frames" and fm.methods["cobevt"].frames == 24
+    assert fm.differences[("cobevt", "none")].frames == 20  # paired on the frames both scored
+    assert fm.differences[("cobevt", "none")].mean == pytest.approx(0.1)
+    (ap,) = point_stats(rows, [pt], "ap70", 300, 0)
+    assert ap.level == "seeds" and ap.methods["none"].frames == 4
+    assert point_stats(rows, [pt], "iou_lane", 300, 0) == []  # no value anywhere
+    rows[0] = Row(pt, 0, "none", rows[0].metrics, tmp_path, None)  # one run without a recording
+    assert point_stats(rows, [pt], "iou_vehicle_frame_mean", 300, 0)[0].level == "seeds"
+
+
+def test_per_frame_values_come_from_the_recording(tmp_path: Path) -> None:
+    import rerun as rr
+
+    from v2vsim.study.rows import per_frame_vehicle_iou
+
+    rrd = tmp_path / "recording.rrd"
+    rec = rr.RecordingStream("v2vsim-test")
+    rec.save(str(rrd))
+    for f in range(4):
+        rec.set_time("frame", sequence=f)
+        rec.log("metrics/iou_vehicle/cobevt", rr.Scalars(0.5 + 0.1 * f))
+        if f != 2:  # a frame without vehicle cells for this method is not logged
+            rec.log("metrics/iou_vehicle/none", rr.Scalars(0.25))
+    rec.flush()
+    rec.disconnect()
+    got = per_frame_vehicle_iou(rrd)
+    assert got["cobevt"] == pytest.approx({0: 0.5, 1: 0.6, 2: 0.7, 3: 0.8}) and got["none"] == {0: 0.25, 1: 0.25,
+                                                                                                3: 0.25}
+    (tmp_path / "broken.rrd").write_bytes(b"not a recording")
+    assert per_frame_vehicle_iou(tmp_path / "broken.rrd") == {}
+
+
+# ---- the real thing --------------------------------------------------------------------------------------
+
+
+def test_real_two_point_sweep_writes_the_contract_csv_and_plots(tmp_path: Path) -> None:
+    import subprocess
+
+    out = tmp_path / "sweep"
+    t0 = time.monotonic()
+    r = subprocess.run([sys.executable, "-m", "v2vsim.cli", "sweep", str(SCENARIO), "--grid", "comm.drop.p=0,0.5",
+                        "--seeds", "0-0", "--frames", "3", "--set", "cavs.count=2", "--methods", "none,cobevt",
+                        "--bootstrap", "200", "--out", str(out)], capture_output=True, text=True, cwd=REPO,
+                       timeout=240)
+    took = time.monotonic() - t0
+    assert r.returncode == 0, r.stderr
+    print(f"real sweep: {took:.1f} s")
+    assert "v2vsim sweep: 2/2 runs, 0 running" in r.stderr
+    rows = _csv(out / "sweep.csv")
+    assert list(rows[0])[:3 + len(CONTRACT_METRICS)] == ["comm.drop.p", "seed", "method", *CONTRACT_METRICS]
+    assert [(x["comm.drop.p"], x["seed"], x["method"]) for x in rows] == [
+        ("0", "0", "none"), ("0", "0", "cobevt"), ("0.5", "0", "none"), ("0.5", "0", "cobevt")]
+    for x in rows:
+        assert 0 <= float(x["iou_vehicle"]) <= 1 and float(x["fusion_ms"]) > 0
+    run = out / "runs" / "comm.drop.p=0.5" / "seed0"
+    m = json.loads((run / "metrics.json").read_text())
+    assert m["status"] == "complete" and m["frames"] == 3 and m["cavs"] == 2
+    assert not (run / "recording.rrd").exists()  # output.rerun=false by default in a sweep
+    for name in ("sweep.json", "sweep.md", "sweep_comm.drop.p_iou_vehicle.png", "sweep_comm.drop.p_ap50.png",
+                 "sweep_comm.drop.p_ap70.png"):
+        assert (out / name).stat().st_size > 0, name

@@ -1,0 +1,82 @@
+"""A sweep's data: one row per (grid point, seed, method) from each run's metrics.json, and the run's
+per-frame visible-vehicle IoU where the run recorded it.
+
+metrics.json carries whole-run values only. The per-frame IoU of each method is logged to the run's
+recording.rrd (`metrics/iou_vehicle/<method>` on the `frame` timeline), which a run writes when
+output.rerun is true; without it the statistics resample seeds only.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from v2vsim.study.grid import Point
+from v2vsim.study.runs import RunResult, read_metrics
+
+# The contract's method metrics first, in this order; any others a run reports follow, sorted.
+CONTRACT_METRICS = ("iou_vehicle", "iou_vehicle_frame_mean", "iou_road", "iou_lane", "ap50", "ap70",
+                    "fusion_ms", "bytes_per_frame")
+IOU_ENTITY = "/metrics/iou_vehicle/"
+
+
+@dataclass(frozen=True)
+class Row:
+    point: Point
+    seed: int
+    method: str
+    metrics: dict[str, Any]
+    run_dir: Path
+    per_frame: dict[int, float] | None = None  # frame index -> this method's visible-vehicle IoU
+
+
+def per_frame_vehicle_iou(rrd: Path) -> dict[str, dict[int, float]]:
+    """Per method, frame index -> visible-vehicle IoU, as the run logged it to its recording; {} when the
+    recording cannot be read (then the run counts without per-frame values)."""
+    try:
+        from rerun.chunk import RrdReader
+
+        chunks = RrdReader(str(rrd)).store().stream().filter(content=f"{IOU_ENTITY}**", is_static=False).to_chunks()
+    except Exception:  # noqa: BLE001 - a truncated or foreign recording: fall back to seed-level statistics
+        return {}
+    out: dict[str, dict[int, float]] = {}
+    for c in chunks:
+        method = str(c.entity_path).removeprefix(IOU_ENTITY)
+        rb = c.to_record_batch()
+        if "frame" not in rb.schema.names or "Scalars:scalars" not in rb.schema.names:
+            continue
+        for f, v in zip(rb.column("frame").to_pylist(), rb.column("Scalars:scalars").to_pylist(), strict=True):
+            if f is not None and v:
+                out.setdefault(method, {})[int(f)] = float(v[0])
+    return out
+
+
+def collect(results: Sequence[RunResult]) -> list[Row]:
+    """Rows of every successful run, in plan order (point, seed), methods in the run's order."""
+    rows = []
+    for r in results:
+        if not r.ok:
+            continue
+        doc = read_metrics(r.spec.out)
+        if doc is None:
+            continue
+        rrd = r.spec.out / "recording.rrd"
+        frames = per_frame_vehicle_iou(rrd) if rrd.is_file() else {}
+        for method, metrics in (doc.get("methods") or {}).items():
+            rows.append(Row(r.spec.point, r.spec.seed, method, dict(metrics), r.spec.out, frames.get(method)))
+    return rows
+
+
+def metric_columns(rows: Sequence[Row]) -> list[str]:
+    extra = sorted({k for r in rows for k in r.metrics} - set(CONTRACT_METRICS))
+    return [*CONTRACT_METRICS, *extra]
+
+
+def methods_of(rows: Sequence[Row]) -> list[str]:
+    """Methods in the order runs report them (the scenario's order)."""
+    seen: dict[str, None] = {}
+    for r in rows:
+        seen.setdefault(r.method)
+    return list(seen)

@@ -1,0 +1,294 @@
+"""Running a sweep's runs: each is `v2vsim run` as a child process, up to `jobs` at a time, resumable,
+with one progress line over runs on stderr; Ctrl-C stops the children cleanly.
+
+A run counts as done when its metrics.json says status "complete" and its `sweep_run.json` (what the
+sweep asked for: the scenario as loaded with the run's overrides, and the frames) matches the current
+request; anything else is (re)run. A run's own output (its progress lines, errors) goes to
+`sweep-run.log` in its directory.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import dataclasses
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol, TextIO
+
+from v2vsim.config import load_scenario
+from v2vsim.study.grid import Axis, Point
+
+STOP_GRACE_S = 20.0  # after SIGINT a run stops its own processes (up to 5 s) and writes partial results
+TAIL_LINES = 8
+HEARTBEAT_S = 60.0
+LOG = "sweep-run.log"
+REQUEST = "sweep_run.json"
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    point: Point
+    seed: int
+    out: Path
+    grid: tuple[str, ...]  # the point's overrides, KEY=VALUE
+    request: dict  # scenario digest, overrides (seed first), frames: what makes two runs the same run
+
+    def argv(self, scenario: Path) -> list[str]:
+        args = ["-m", "v2vsim.cli", "run", str(scenario), "--out", str(self.out)]
+        args += [x for o in self.request["overrides"] for x in ("--set", o)]
+        if self.request["frames"] is not None:
+            args += ["--frames", str(self.request["frames"])]
+        return args
+
+
+@dataclass(frozen=True)
+class RunResult:
+    spec: RunSpec
+    ok: bool
+    reused: bool = False
+    code: int | None = None
+    wall_s: float = 0.0
+    why: str = ""  # for a failed run: exit code / status
+    tail: tuple[str, ...] = ()  # for a failed run: its last output lines
+
+
+class Job(Protocol):
+    """A started run (a child process, or a fake in tests)."""
+
+    def poll(self) -> int | None: ...
+    def interrupt(self) -> None: ...
+    def kill(self) -> None: ...
+
+
+def effective_config(scenario: Path, overrides: Sequence[str]) -> dict:
+    """The scenario as a run will load it, as plain JSON data: two requests are the same run when these
+    match, however the overrides were spelled or ordered."""
+    sc = load_scenario(scenario, overrides)
+    doc = {k: v for k, v in dataclasses.asdict(sc).items() if k not in ("source", "overrides")}
+    return json.loads(json.dumps(doc, default=str))
+
+
+def plan(scenario: Path, axes: Sequence[Axis], pts: Sequence[Point], seeds: Sequence[int], base: Sequence[str],
+         frames: int | None, out: Path) -> list[RunSpec]:
+    """Every (point, seed) run, point-major: the same seeds at every point (a paired design)."""
+    specs = []
+    for p in pts:
+        config = effective_config(scenario, [*p.overrides(axes), *base])
+        for s in seeds:
+            request = {"scenario": str(scenario), "overrides": [f"seed={s}", *p.overrides(axes), *base],
+                       "frames": frames, "config": config | {"seed": s}}
+            specs.append(RunSpec(p, s, out / "runs" / p.pid / f"seed{s}", tuple(p.overrides(axes)), request))
+    return specs
+
+
+def read_metrics(run_dir: Path) -> dict | None:
+    try:
+        doc = json.loads((run_dir / "metrics.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return doc if isinstance(doc, dict) else None
+
+
+def is_done(spec: RunSpec) -> bool:
+    """Complete metrics.json from the same request (a run from before the sweep wrote requests counts)."""
+    doc = read_metrics(spec.out)
+    if doc is None or doc.get("status") != "complete":
+        return False
+    try:
+        asked = json.loads((spec.out / REQUEST).read_text())
+    except FileNotFoundError:
+        return True
+    except (OSError, ValueError):
+        return False
+    same = ("config", "frames")  # not the spelling of the overrides
+    return isinstance(asked, dict) and all(asked.get(k) == spec.request[k] for k in same)
+
+
+class ProcessJob:
+    """`v2vsim run` in its own process group (a terminal's Ctrl-C reaches the sweep only, which passes it
+    on), output to the run's log file; on Linux it gets SIGTERM if the sweep dies."""
+
+    def __init__(self, spec: RunSpec, scenario: Path) -> None:
+        spec.out.mkdir(parents=True, exist_ok=True)
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        with open(spec.out / LOG, "wb") as log:
+            self.proc = subprocess.Popen([sys.executable, *spec.argv(scenario)], stdin=subprocess.DEVNULL,
+                                         stdout=log, stderr=subprocess.STDOUT, env=env, process_group=0,
+                                         preexec_fn=_death_signal())
+
+    def poll(self) -> int | None:
+        return self.proc.poll()
+
+    def _signal(self, sig: int) -> None:
+        if self.proc.poll() is None:
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.killpg(self.proc.pid, sig)
+
+    def interrupt(self) -> None:
+        self._signal(signal.SIGINT)
+
+    def kill(self) -> None:
+        self._signal(signal.SIGKILL)
+        self.proc.wait()
+
+
+def _death_signal() -> Callable[[], None] | None:
+    """PR_SET_PDEATHSIG(SIGTERM) in the child, so that a killed sweep leaves no runs behind (Linux only)."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        prctl = ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):
+        return None
+    parent = os.getpid()
+
+    def setup() -> None:
+        prctl(1, int(signal.SIGTERM), 0, 0, 0)
+        if os.getppid() != parent:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    return setup
+
+
+def start_process(scenario: Path) -> Callable[[RunSpec], Job]:
+    return lambda spec: ProcessJob(spec, scenario)
+
+
+def _tail(path: Path, n: int = TAIL_LINES) -> tuple[str, ...]:
+    try:
+        lines = path.read_text(errors="replace").splitlines()
+    except OSError:
+        return ()
+    return tuple(ln for ln in lines if ln.strip())[-n:]
+
+
+def _finish(spec: RunSpec, code: int, wall_s: float) -> RunResult:
+    doc = read_metrics(spec.out)
+    status = None if doc is None else doc.get("status")
+    if code == 0 and status == "complete":
+        return RunResult(spec, True, code=code, wall_s=wall_s)
+    why = f"exit code {code}" + (f", status {status!r}" if status else ", no metrics.json")
+    return RunResult(spec, False, code=code, wall_s=wall_s, why=why, tail=_tail(spec.out / LOG))
+
+
+def _duration(s: float) -> str:
+    s = int(round(s))
+    if s < 60:
+        return f"{s} s"
+    if s < 3600:
+        return f"{s // 60} min {s % 60:02d} s"
+    return f"{s // 3600} h {s % 3600 // 60:02d} min"
+
+
+@dataclass
+class Progress:
+    """One line over runs: done / total, reused, failed, running, elapsed, ETA (from this session's runs)."""
+
+    total: int
+    jobs: int
+    stream: TextIO
+    t0: float = 0.0
+    done: int = 0
+    reused: int = 0
+    failed: int = 0
+    walls: tuple[float, ...] = ()
+
+    def line(self, running: int, now: float) -> str:
+        left = self.total - self.done
+        eta = "-"
+        if self.walls and left:
+            mean = sum(self.walls) / len(self.walls)
+            eta = _duration(mean * left / max(1, min(self.jobs, left)))
+        elif not left:
+            eta = "0 s"
+        extra = [f"{self.reused} reused"] if self.reused else []
+        extra += [f"{self.failed} failed"] if self.failed else []
+        return (f"v2vsim sweep: {self.done}/{self.total} runs" + (f" ({', '.join(extra)})" if extra else "")
+                + f", {running} running, elapsed {_duration(now - self.t0)}, ETA {eta}")
+
+    def show(self, running: int) -> None:
+        self.stream.write(self.line(running, time.monotonic()) + "\n")
+        self.stream.flush()
+
+    def say(self, text: str) -> None:
+        self.stream.write(text + "\n")
+        self.stream.flush()
+
+
+def execute(specs: Sequence[RunSpec], jobs: int, start: Callable[[RunSpec], Job], progress: Progress,
+            poll_s: float = 0.2) -> tuple[list[RunResult], bool]:
+    """Run what is not done yet, up to `jobs` at a time; returns (results, interrupted). A failed run is
+    reported and the others go on. On KeyboardInterrupt the running children get SIGINT (they write
+    partial results), then SIGKILL after STOP_GRACE_S; finished runs are kept."""
+    results: list[RunResult] = []
+    pending: list[RunSpec] = []
+    for s in specs:
+        if is_done(s):
+            results.append(RunResult(s, True, reused=True))
+        else:
+            pending.append(s)
+    progress.t0 = time.monotonic()
+    progress.reused = progress.done = len(results)
+    running: list[tuple[RunSpec, Job, float]] = []
+
+    def fill() -> None:
+        while pending and len(running) < jobs:
+            spec = pending.pop(0)
+            spec.out.mkdir(parents=True, exist_ok=True)
+            (spec.out / "metrics.json").unlink(missing_ok=True)  # stale, or another request's
+            (spec.out / REQUEST).write_text(json.dumps(spec.request, indent=2))
+            running.append((spec, start(spec), time.monotonic()))
+
+    try:
+        fill()
+        progress.show(len(running))
+        shown = time.monotonic()
+        while running:
+            time.sleep(poll_s)
+            finished = [(item, code) for item in running if (code := item[1].poll()) is not None]
+            if not finished:
+                if time.monotonic() - shown > HEARTBEAT_S:  # runs take minutes: say the sweep is alive
+                    progress.show(len(running))
+                    shown = time.monotonic()
+                continue
+            running[:] = [item for item in running if item not in [f for f, _ in finished]]
+            for (spec, _, t0), code in finished:
+                r = _finish(spec, code, time.monotonic() - t0)
+                results.append(r)
+                progress.done += 1
+                progress.walls += (r.wall_s,)
+                if not r.ok:
+                    progress.failed += 1
+                    progress.say(f"v2vsim sweep: run {describe(spec)} failed ({r.why}); last lines of "
+                                 f"{spec.out / LOG}:" + "".join(f"\n    {ln}" for ln in r.tail))
+            fill()
+            progress.show(len(running))
+            shown = time.monotonic()
+    except KeyboardInterrupt:
+        progress.say(f"v2vsim sweep: interrupted; stopping {len(running)} running run(s) (finished runs are kept)")
+        _stop(running)
+        return results, True
+    return results, False
+
+
+def describe(spec: RunSpec) -> str:
+    return f"[{', '.join(spec.grid) or 'no grid'}] seed {spec.seed}"
+
+
+def _stop(running: Sequence[tuple[RunSpec, Job, float]]) -> None:
+    for _, job, _ in running:
+        job.interrupt()
+    deadline = time.monotonic() + STOP_GRACE_S
+    for _, job, _ in running:
+        while job.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.1)
+        if job.poll() is None:
+            job.kill()

@@ -1,0 +1,121 @@
+"""`v2vsim sweep`: run a scenario over a grid of overrides x seeds, then tabulate and plot the methods'
+metrics with 95% bootstrap intervals (DESIGN.md "Studies, channel and environment").
+
+    DIR/runs/<point>/seed<k>/   each run's own output (metrics.json, report.md, sweep-run.log, ...)
+    DIR/sweep.csv               one row per (grid point, seed, method): swept keys, seed, method, metrics
+    DIR/sweep.json              grid, seeds, frames, rows, statistics, failed runs
+    DIR/sweep.md                per swept key: mean [95% CI] per method and point, paired differences
+    DIR/sweep_<key>_<metric>.png
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TextIO
+
+from v2vsim.config import ConfigError, check_output_dir, load_scenario
+from v2vsim.study.grid import Axis, Point, base_overrides, parse_axes, parse_seeds, points, validate
+from v2vsim.study.rows import collect, methods_of
+from v2vsim.study.runs import LOG, Job, Progress, RunResult, RunSpec, execute, plan, start_process
+from v2vsim.study.stats import DEFAULT_B, DEFAULT_RNG_SEED, LEVEL
+
+EXIT_FAILED, EXIT_INTERRUPTED = 1, 130
+
+
+@dataclass(frozen=True)
+class SweepArgs:
+    scenario: Path
+    grid: tuple[str, ...]
+    seeds: str
+    out: Path
+    frames: int | None = None
+    jobs: int = 1
+    overrides: tuple[str, ...] = ()
+    methods: str | None = None
+    bootstrap: int = DEFAULT_B
+
+
+@dataclass(frozen=True)
+class Design:
+    """What a sweep will run, validated."""
+
+    scenario: Path
+    name: str
+    axes: list[Axis]
+    points: list[Point]
+    seeds: list[int]
+    base: list[str]
+    specs: list[RunSpec]
+
+
+def prepare(args: SweepArgs) -> Design:
+    """Parse and validate everything (ConfigError names the bad option, key or value); nothing runs."""
+    if args.frames is not None and args.frames < 1:
+        raise ConfigError(f"--frames {args.frames}: expected a number of frames >= 1")
+    if args.jobs < 1:
+        raise ConfigError(f"--jobs {args.jobs}: expected >= 1")
+    if args.bootstrap < 100:
+        raise ConfigError(f"--bootstrap {args.bootstrap}: expected >= 100 resamples")
+    scenario = Path(args.scenario).resolve()
+    sc = load_scenario(args.scenario, list(args.overrides))
+    axes = parse_axes(args.grid)
+    seeds = parse_seeds(args.seeds)
+    base = base_overrides(axes, args.overrides, args.methods)
+    pts = points(axes)
+    validate(Path(args.scenario), axes, pts, base, seeds)
+    check_output_dir(args.out, "--out")
+    specs = plan(scenario, axes, pts, seeds, base, args.frames, args.out)
+    return Design(scenario, sc.name, axes, pts, seeds, base, specs)
+
+
+def sweep(args: SweepArgs, start: Callable[[RunSpec], Job] | None = None, stream: TextIO | None = None) -> int:
+    """Run the sweep and write its files; the exit code (0, 1 if a run failed, 130 when interrupted)."""
+    d = prepare(args)
+    stream = stream or sys.stderr
+    print(f"v2vsim sweep: {len(d.points)} point(s) x {len(d.seeds)} seed(s) = {len(d.specs)} runs, "
+          f"{args.jobs} at a time -> {args.out}", file=stream)
+    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)  # `kill` stops it like Ctrl-C
+    try:
+        results, interrupted = execute(d.specs, args.jobs, start or start_process(d.scenario),
+                                       Progress(len(d.specs), args.jobs, stream))
+        paths = write_outputs(args, d, results, interrupted)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    failed = [r for r in results if not r.ok]
+    print(f"v2vsim sweep: {'interrupted' if interrupted else 'done'}: {sum(r.ok for r in results)} of "
+          f"{len(d.specs)} runs complete, {len(failed)} failed; {paths[0]}", file=stream)
+    if interrupted:
+        return EXIT_INTERRUPTED
+    return EXIT_FAILED if failed else 0
+
+
+def write_outputs(args: SweepArgs, d: Design, results: Sequence[RunResult], interrupted: bool) -> list[Path]:
+    """sweep.csv, sweep.json, sweep.md and the plots from the runs that completed."""
+    from v2vsim.study.plots import plot_all
+    from v2vsim.study.summary import STAT_METRICS, point_stats, sweep_json, sweep_md, write_csv, write_json
+
+    order = {s.out: i for i, s in enumerate(d.specs)}
+    results = sorted(results, key=lambda r: order[r.spec.out])
+    rows = collect(results)
+    stats = [s for m in STAT_METRICS for s in point_stats(rows, d.points, m, args.bootstrap, DEFAULT_RNG_SEED)]
+    failed = [{"point": ", ".join(r.spec.grid), "seed": r.spec.seed, "code": r.code, "why": r.why,
+               "tail": list(r.tail), "log": str(r.spec.out / LOG)} for r in results if not r.ok]
+    meta = {"scenario": str(args.scenario), "scenario_name": d.name, "seeds": d.seeds, "frames": args.frames,
+            "points": [p.pid for p in d.points], "overrides": d.base, "jobs": args.jobs,
+            "bootstrap": {"b": args.bootstrap, "rng_seed": DEFAULT_RNG_SEED, "level": LEVEL,
+                          "method": "paired two-level bootstrap (seeds, then frames within each seed), "
+                                    "expanded percentile intervals"},
+            "runs": {"total": len(d.specs), "complete": sum(r.ok for r in results),
+                     "reused": sum(r.reused for r in results), "failed": failed},
+            "interrupted": interrupted}
+    out = args.out
+    paths = [out / "sweep.csv", out / "sweep.json", out / "sweep.md"]
+    write_csv(paths[0], d.axes, rows)
+    pngs = plot_all(out, d.axes, methods_of(rows), stats, d.name) if rows else []
+    write_json(paths[1], sweep_json(meta, d.axes, rows, stats, out) | {"plots": [p.name for p in pngs]})
+    paths[2].write_text(sweep_md(meta, d.axes, rows, stats, failed, [p.name for p in pngs]))
+    return paths + pngs
