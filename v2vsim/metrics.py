@@ -45,7 +45,8 @@ class IouAccumulator:
 
     inter: int = 0
     union: int = 0
-    per_frame: list[float] = field(default_factory=list)
+    per_frame: list[float] = field(default_factory=list)  # IoU of each frame with a non-empty union
+    counts: list[tuple[int, int]] = field(default_factory=list)  # (intersection, union) of every frame
 
     def add(self, pred: np.ndarray, truth: np.ndarray, ignore: np.ndarray | None = None) -> None:
         if ignore is not None:
@@ -55,6 +56,7 @@ class IouAccumulator:
         u = int(np.count_nonzero(pred | truth))
         self.inter += i
         self.union += u
+        self.counts.append((i, u))
         if u:
             self.per_frame.append(i / u)
 
@@ -172,4 +174,6 @@ class MethodScore:
             "fusion_ms": r(float(np.mean(self.fusion_ms))) if self.fusion_ms else None,
             "bytes_per_frame": int(np.mean(self.bytes)) if self.bytes else 0,
             "frames": self.frames,
+            # per fused frame, in order: what a study needs to resample frames (v2vsim sweep's bootstrap)
+            "iou_vehicle_counts": [list(c) for c in self.vehicle.counts],
         }

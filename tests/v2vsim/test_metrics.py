@@ -111,3 +111,19 @@ def test_metrics_json_and_report_carry_neighbour_shares_and_ap_sort() -> None:
 def test_ap_sort_is_checked_in_the_scenario() -> None:
     with pytest.raises(ConfigError, match=r"evaluation\.ap_sort.*'global' \| 'per_frame'"):
         scenario_from_dict({"traffic": {"backend": "highway-env"}, "evaluation": {"ap_sort": "perframe"}})
+
+
+def test_per_frame_vehicle_counts_add_up_to_the_dataset_iou() -> None:
+    s = MethodScore()
+    z = np.zeros((4, 4), bool)
+    for hit in (2, 0, 1):  # frame 1: nothing predicted, nothing there (union 0)
+        gt = {"dynamic": z.copy(), "visible": z.copy(), "road": z, "lane": z}
+        p = np.zeros((4, 4), np.float32)
+        if hit:
+            gt["visible"][0, :2] = gt["dynamic"][0, :2] = True
+            p[0, :hit] = 0.9
+        s.add_segmentation({"vehicle": p}, gt)
+    j = s.to_json(None)
+    assert j["iou_vehicle_counts"] == [[2, 2], [0, 0], [1, 2]]
+    i, u = np.sum(j["iou_vehicle_counts"], axis=0)
+    assert j["iou_vehicle"] == pytest.approx(i / u) and j["iou_vehicle_frame_mean"] == pytest.approx(0.75)

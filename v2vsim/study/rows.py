@@ -1,9 +1,7 @@
-"""A sweep's data: one row per (grid point, seed, method) from each run's metrics.json, and the run's
-per-frame visible-vehicle IoU where the run recorded it.
-
-metrics.json carries whole-run values only. The per-frame IoU of each method is logged to the run's
-recording.rrd (`metrics/iou_vehicle/<method>` on the `frame` timeline), which a run writes when
-output.rerun is true; without it the statistics resample seeds only.
+"""A sweep's data: one row per (grid point, seed, method) from each run's metrics.json, with the run's
+per-frame visible-vehicle IoU: from metrics.json's `iou_vehicle_counts` (intersection, union per fused
+frame), or, for runs written before that key existed, from the run's recording.rrd
+(`metrics/iou_vehicle/<method>` on the `frame` timeline); without either the statistics resample seeds only.
 """
 
 from __future__ import annotations
@@ -19,6 +17,7 @@ from v2vsim.study.runs import RunResult, read_metrics
 # The contract's method metrics first, in this order; any others a run reports follow, sorted.
 CONTRACT_METRICS = ("iou_vehicle", "iou_vehicle_frame_mean", "iou_road", "iou_lane", "ap50", "ap70",
                     "fusion_ms", "bytes_per_frame")
+COUNTS_KEY = "iou_vehicle_counts"  # per-frame lists: read into Row.per_frame, not a CSV column
 IOU_ENTITY = "/metrics/iou_vehicle/"
 
 
@@ -63,9 +62,17 @@ def collect(results: Sequence[RunResult]) -> list[Row]:
         if doc is None:
             continue
         rrd = r.spec.out / "recording.rrd"
-        frames = per_frame_vehicle_iou(rrd) if rrd.is_file() else {}
-        for method, metrics in (doc.get("methods") or {}).items():
-            rows.append(Row(r.spec.point, r.spec.seed, method, dict(metrics), r.spec.out, frames.get(method)))
+        methods = doc.get("methods") or {}
+        logged = None
+        for method, metrics in methods.items():
+            metrics = dict(metrics)
+            counts = metrics.pop(COUNTS_KEY, None)
+            if counts is not None:
+                per_frame = {k: i / u for k, (i, u) in enumerate(counts) if u}
+            else:
+                logged = logged if logged is not None else per_frame_vehicle_iou(rrd) if rrd.is_file() else {}
+                per_frame = logged.get(method)
+            rows.append(Row(r.spec.point, r.spec.seed, method, metrics, r.spec.out, per_frame))
     return rows
 
 
