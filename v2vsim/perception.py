@@ -258,7 +258,7 @@ def predict(method: str, model: nn.Module, inp: FusionInputs, cells: int) -> Pre
         boxes = None
         if model.heads.detection is not None:
             per = [torch.from_numpy(inp.outputs[s][1]) for s in names]
-            boxes = late_fuse_boxes(per, poses, valid).numpy()
+            boxes = late_fuse_boxes(per, poses, valid, extent_m=model.bev_size_m).numpy()
         return Prediction(probs, boxes, (time.perf_counter() - t0) * 1000)
     if method == "early":
         if ego not in inp.points:

@@ -38,10 +38,13 @@ def late_fuse_boxes(
     valid: Tensor | None = None,
     iou_threshold: float = 0.15,
     max_out: int | None = None,
+    extent_m: float | None = None,
 ) -> Tensor:
     """Union of every valid agent's boxes [N_j, 6] (x, y, l, w, yaw, score) in the ego frame + rotated NMS.
 
-    rel_poses: [L, 3] agent poses in the ego body frame. Returns [K, 6] sorted by score.
+    rel_poses: [L, 3] agent poses in the ego body frame. extent_m: keep only boxes whose centre lies on
+    the ego's extent_m x extent_m grid (a neighbour sees beyond it; ground truth and every other method
+    stop there, as OpenCOOD's range mask does). Returns [K, 6] sorted by score.
     """
     if valid is None:
         valid = torch.ones(len(boxes), dtype=torch.bool)
@@ -49,5 +52,7 @@ def late_fuse_boxes(
     if not moved:
         return rel_poses.new_zeros(0, 6)
     allb = torch.cat(moved, dim=0)
+    if extent_m is not None:
+        allb = allb[(allb[:, 0].abs() < extent_m / 2) & (allb[:, 1].abs() < extent_m / 2)]
     keep = rotated_nms(allb[:, :5], allb[:, 5], iou_threshold, max_out)
     return allb[keep]
