@@ -98,3 +98,23 @@ def test_view_without_a_display_prints_the_command(tmp_path: Path, capsys: pytes
     assert main(["view", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert f"rerun {tmp_path / 'recording.rrd'}" in out and "--screenshots" in out
+
+
+def test_sigint_stops_a_verb_started_with_sigint_ignored() -> None:
+    """`cmd &` in a shell without job control starts cmd with SIGINT ignored; Ctrl-C (the runner's
+    SIGINT, a test's) must still stop every verb."""
+    import signal
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    proc = subprocess.Popen([sys.executable, "-m", "v2vsim.cli", "router", "--listen", f"tcp/127.0.0.1:{port}"],
+                            stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    try:
+        assert "listening" in proc.stderr.readline()  # type: ignore[union-attr]
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=15) != 0
+    finally:
+        proc.kill()

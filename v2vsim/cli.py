@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import signal
 import sys
 from pathlib import Path
 
@@ -256,6 +257,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    # A shell starts background commands (`cmd &` without job control) with SIGINT ignored, and Python
+    # then never raises KeyboardInterrupt: Ctrl-C and the runner's SIGINT must still stop every verb.
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     args = build_parser().parse_args(argv)
     if getattr(args, "verb", None) == "router" and not args.listen:
         args.listen = ["tcp/127.0.0.1:7447"]
