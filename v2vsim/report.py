@@ -120,6 +120,7 @@ def report_md(doc: dict, summary: RunSummary) -> str:
               f"{sc.comm.latency_ms.jitter:g} ms ({sc.comm.latency_ms.distribution}), drop {sc.comm.drop.model} "
               f"p={sc.comm.drop.p:g}, bandwidth {sc.comm.bandwidth_mbps} Mbps, max age {sc.comm.max_age_ms:g} ms, "
               f"pose noise {sc.comm.pose_noise.xy_std_m:g} m / {sc.comm.pose_noise.yaw_std_deg:g}°.",
+              *_link_states_md(doc, summary),
               *_neighbours_md(doc, summary),
               "", "## Reference (CoBEVT paper, OPV2V; real data, trained models)", "",
               "| method | camera IoU vehicle / road / lane | LiDAR AP@0.7 |", "|---|---|---|"]
@@ -127,9 +128,32 @@ def report_md(doc: dict, summary: RunSummary) -> str:
         cam = PAPER_CAMERA.get(m)
         lines.append(f"| {m} | {' / '.join(f'{v:.1f}' for v in cam) if cam else '-'} | "
                      f"{PAPER_LIDAR_AP70.get(m, '-')} |")
-    lines += ["", "Plots: `iou_by_method.png`, `iou_per_frame.png`. Recording: `recording.rrd` "
-              "(open with `rerun recording.rrd`).", ""]
+    pngs = ["iou_by_method.png", "iou_per_frame.png"] + (["delivery_by_distance.png"] if "los" in c else [])
+    lines += ["", f"Plots: {', '.join(f'`{p}`' for p in pngs)}. Recording: `recording.rrd` "
+              "(open with `v2vsim view` on this directory).", ""]
     return "\n".join(lines)
+
+
+def _link_states_md(doc: dict, summary: RunSummary) -> list[str]:
+    """Under comm.channel.model tr37885: messages per link state and the delivery ratio by distance."""
+    c = doc["comm"]
+    if "los" not in c:
+        return []
+    ch = summary.scenario.comm.channel
+    lines = ["", f"Radio (`comm.channel.model: tr37885`, {ch.scenario}, {ch.carrier_ghz:g} GHz, MCS {ch.mcs}, "
+             f"{ch.tx_power_dbm:g} dBm): messages in range by link state LOS {c['los']}, NLOS {c['nlos']}, "
+             f"NLOSv {c['nlosv']}. Delivery ratio by distance (delivered / sent):", "",
+             "| link state | " + " | ".join(f"{b} m" for b in _distance_bins(c)) + " |",
+             "|---|" + "---|" * len(_distance_bins(c))]
+    for state, bins in (c.get("delivery_by_distance") or {}).items():
+        cells = [f"{bins[b]['ratio']:.2f} ({bins[b]['sent']})" if b in bins else "-" for b in _distance_bins(c)]
+        lines.append(f"| {state} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _distance_bins(comm: dict) -> list[str]:
+    bins = {b for per in (comm.get("delivery_by_distance") or {}).values() for b in per}
+    return sorted(bins, key=lambda b: float(b.split("-")[0]))
 
 
 def _neighbours_md(doc: dict, summary: RunSummary) -> list[str]:
@@ -162,9 +186,10 @@ def plot(out: Path, doc: dict, scores: dict[str, MethodScore]) -> list[Path]:
         ax.bar(np.arange(len(methods)) + (j - 1) * w, vals, w, label=label)
     ax.set_xticks(np.arange(len(methods)), methods)
     ax.set_ylabel("IoU")
-    ax.set_ylim(0, 1)
+    ax.set_ylim(0, 1.15)  # room above the bars for the legend
+    ax.set_yticks(np.linspace(0, 1, 6))
     ax.set_title(f"{doc['scenario']}: IoU by method ({doc['frames']} frames)")
-    ax.legend()
+    ax.legend(ncol=3, loc="upper center", fontsize=9)
     fig.tight_layout()
     paths.append(out / "iou_by_method.png")
     fig.savefig(paths[-1], dpi=100)
@@ -181,6 +206,23 @@ def plot(out: Path, doc: dict, scores: dict[str, MethodScore]) -> list[Path]:
     paths.append(out / "iou_per_frame.png")
     fig.savefig(paths[-1], dpi=100)
     plt.close(fig)
+
+    by_distance = doc["comm"].get("delivery_by_distance")
+    if by_distance is not None:
+        bins = _distance_bins(doc["comm"])
+        fig, ax = plt.subplots(figsize=(7, 4))
+        for state, per in by_distance.items():
+            xs = [sum(map(float, b.split("-"))) / 2 for b in bins if b in per]
+            ax.plot(xs, [per[b]["ratio"] for b in bins if b in per], "o-", label=state.upper())
+        ax.set_xlabel("sender-receiver distance (m, bin centre)")
+        ax.set_ylabel("delivery ratio")
+        ax.set_ylim(0, 1.05)
+        ax.set_title(f"{doc['scenario']}: delivery by distance and link state (tr37885)")
+        ax.legend()
+        fig.tight_layout()
+        paths.append(out / "delivery_by_distance.png")
+        fig.savefig(paths[-1], dpi=100)
+        plt.close(fig)
     return paths
 
 

@@ -3,6 +3,8 @@ and what metrics.json / report.md say about them."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -127,3 +129,24 @@ def test_per_frame_vehicle_counts_add_up_to_the_dataset_iou() -> None:
     assert j["iou_vehicle_counts"] == [[2, 2], [0, 0], [1, 2]]
     i, u = np.sum(j["iou_vehicle_counts"], axis=0)
     assert j["iou_vehicle"] == pytest.approx(i / u) and j["iou_vehicle_frame_mean"] == pytest.approx(0.75)
+
+
+def test_report_and_plot_of_link_states_under_tr37885(tmp_path) -> None:
+    from v2vsim.comm.channel import Delivery
+    from v2vsim.report import plot
+
+    comm = CommStats()
+    comm.track_link_states()
+    for state, dist, ok in [("los", 10, True), ("los", 30, True), ("los", 30, False), ("nlos", 60, False)]:
+        comm.record_channel(Delivery(ok, "ok" if ok else "dropped", 0.1 if ok else math.inf, 0.0, state=state), dist)
+    summary = _summary()
+    scores = {"none": MethodScore()}
+    doc = metrics_json(summary, scores, comm, {}, None)
+    assert (doc["comm"]["los"], doc["comm"]["nlos"], doc["comm"]["nlosv"]) == (3, 1, 0)
+    md = report_md(doc, summary)
+    assert "| link state | 0-25 m | 25-50 m | 50-75 m |" in md
+    assert "| los | 1.00 (1) | 0.50 (2) | - |" in md and "| nlos | - | - | 0.00 (1) |" in md
+    assert "`delivery_by_distance.png`" in md
+    assert (tmp_path / "delivery_by_distance.png") in plot(tmp_path, doc, scores)
+    plain = metrics_json(summary, scores, CommStats(), {}, None)
+    assert "los" not in plain["comm"] and "link state" not in report_md(plain, summary)
