@@ -30,6 +30,7 @@ from agents.common import (
     run_agent,
 )
 from v2vsim.comm.codec import Message, encode
+from v2vsim.geometry import Pose
 from v2vsim.gt import visible_actor_ids
 from v2vsim.perception import (
     body_frame_points,
@@ -139,17 +140,16 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
                                               key))
             if sc.output.rerun:
                 with timer.stage("recording"):
-                    bus.put("scan", _scan(world, sf, scene, args))
+                    bus.put("scan", _scan(world, actor.pose, sf, scene, args))
             timer.frame_done()
     finally:
         write_timing(args.out, f"cav.{me}", timer)
 
 
-def _scan(world: WorldState, sf: SensorFrame, scene: Scene, args: AgentArgs) -> bytes:
+def _scan(world: WorldState, pose: Pose, sf: SensorFrame, scene: Scene, args: AgentArgs) -> bytes:
     """The recording's view of this frame: a subset of the sweep in world coordinates, and from
     an ego's own CAV its four camera images (rendered for the recording if the encoder used LiDAR)."""
     sc, me = args.scenario, args.cav
-    pose = world.actor(me).pose
     points = None if sf.lidar is None else world_points(sf.lidar.points, pose, sc.sensors.lidar.height_m, sc.seed,
                                                         world.frame, me)
     images = None

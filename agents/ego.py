@@ -328,7 +328,8 @@ class AfterFusion:
                 if self.recorder is not None:
                     with self.timer.stage("recording"):
                         self.recorder.log_frame(job.k, job.world, job.gt, job.boxes_gt, job.preds, job.inp,
-                                                job.links, job.scans)
+                                                job.links, job.scans,
+                                                {m: self.scores[m].vehicle.last_iou for m in job.preds})
             except BaseException as e:  # noqa: BLE001 - handed to the main thread as is
                 self.error = e
 

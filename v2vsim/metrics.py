@@ -65,6 +65,14 @@ class IouAccumulator:
         return self.inter / self.union if self.union else None
 
     @property
+    def last_iou(self) -> float | None:
+        """The latest frame's IoU (None when that frame's union was empty or nothing was added)."""
+        if not self.counts or not self.counts[-1][1]:
+            return None
+        i, u = self.counts[-1]
+        return i / u
+
+    @property
     def frame_mean(self) -> float | None:
         return float(np.mean(self.per_frame)) if self.per_frame else None
 

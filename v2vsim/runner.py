@@ -179,9 +179,9 @@ def _start(children: list[Child], sc: Scenario, procs: list[str], endpoints: dic
            overrides: list[str], run_id: str, cavs: list[str], egos: list[str], frames: int, out: Path,
            display: ProgressDisplay) -> None:
     """Start every process (appending to `children` as it goes, so that Ctrl-C stops those already up),
-    then one stderr reader per child (threads only after the forks: see `_child_setup`)."""
+    then one stderr reader per child (threads only after the forks: see `die_with_parent`)."""
     env = dict(os.environ, PYTHONUNBUFFERED="1", **{PROGRESS_ENV: "records"})
-    setup = _child_setup(os.getpid())
+    setup = die_with_parent(os.getpid())
     for name in procs:
         role, ident = name.split(".", 1)
         module = {"driver": "agents.driver", "cav": "agents.cav", "ego": "agents.ego"}[role]
@@ -198,7 +198,7 @@ def _start(children: list[Child], sc: Scenario, procs: list[str], endpoints: dic
         c.reader.start()
 
 
-def _child_setup(parent: int) -> Callable[[], None] | None:
+def die_with_parent(parent: int) -> Callable[[], None] | None:
     """What a child runs between fork and exec: ask Linux for SIGTERM when the runner dies.
 
     PR_SET_PDEATHSIG fires when the thread that forked the child ends, so children are started

@@ -13,7 +13,7 @@ from matplotlib import colormaps
 
 from models.nms import box_corners
 from v2vsim.geometry import BevGrid
-from v2vsim.metrics import THRESHOLD, IouAccumulator
+from v2vsim.metrics import THRESHOLD
 
 GT_CLASSES = [(0, "background", (20, 20, 20)), (1, "road", (90, 90, 90)), (2, "lane", (230, 230, 230)),
               (3, "vehicle", (255, 80, 60)), (4, "vehicle (not visible)", (120, 60, 160))]
@@ -68,13 +68,6 @@ def error_image(p_vehicle: np.ndarray, gt: dict[str, np.ndarray]) -> np.ndarray:
     code = (p_vehicle >= THRESHOLD).view(np.uint8) | (gt["visible"].view(np.uint8) << 1)
     code |= (hidden.view(np.uint8) << 2) | (gt["road"].view(np.uint8) << 3) | (gt["lane"].view(np.uint8) << 4)
     return _ERROR_LUT[code]
-
-
-def vehicle_iou(p_vehicle: np.ndarray, gt: dict[str, np.ndarray]) -> float | None:
-    """This frame's visible-vehicle IoU, scored as metrics.json scores it; None when both are empty."""
-    acc = IouAccumulator()
-    acc.add(p_vehicle >= THRESHOLD, gt["visible"], ignore=gt["dynamic"] & ~gt["visible"])
-    return acc.iou
 
 
 def box_strips(grid: BevGrid, boxes: np.ndarray) -> np.ndarray:

@@ -74,7 +74,8 @@ class Recorder:
 
     def log_frame(self, k: int, world: WorldState, gt: dict[str, np.ndarray], boxes_gt: np.ndarray,
                   preds: dict[str, Prediction], inp: FusionInputs, links: list[LinkEvent],
-                  scans: dict[str, Scan]) -> None:
+                  scans: dict[str, Scan], ious: dict[str, float | None]) -> None:
+        """ious: each method's visible-vehicle IoU of this frame as scoring computed it (None: empty union)."""
         rec = self.rec
         rec.set_time("frame", sequence=k)
         rec.set_time("sim_time", duration=world.time)
@@ -91,7 +92,7 @@ class Recorder:
             boxes = p.boxes if p.boxes is not None else np.zeros((0, 6), np.float32)
             rec.log(f"bev/{m}/boxes", rr.LineStrips2D(bev.box_strips(self.grid, boxes), colors=bev.PRED_BOX_RGB,
                                                       radii=0.6))
-            if (iou := bev.vehicle_iou(veh, gt)) is not None:
+            if (iou := ious.get(m)) is not None:
                 rec.log(f"metrics/iou_vehicle/{m}", rr.Scalars(iou))
         self._log_links(links)
         fates = ", ".join(f"{e.sender} {e.outcome.replace('_', ' ')}" for e in links) or "no V2V messages"

@@ -10,7 +10,6 @@ request; anything else is (re)run. A run's own output (its progress lines, error
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import dataclasses
 import json
 import os
@@ -24,6 +23,7 @@ from pathlib import Path
 from typing import Protocol, TextIO
 
 from v2vsim.config import load_scenario
+from v2vsim.runner import die_with_parent
 from v2vsim.study.grid import Axis, Point
 
 STOP_GRACE_S = 20.0  # after SIGINT a run stops its own processes (up to 5 s) and writes partial results
@@ -122,7 +122,7 @@ class ProcessJob:
         with open(spec.out / LOG, "wb") as log:
             self.proc = subprocess.Popen([sys.executable, *spec.argv(scenario)], stdin=subprocess.DEVNULL,
                                          stdout=log, stderr=subprocess.STDOUT, env=env, process_group=0,
-                                         preexec_fn=_death_signal())
+                                         preexec_fn=die_with_parent(os.getpid()))  # a killed sweep leaves no runs
 
     def poll(self) -> int | None:
         return self.proc.poll()
@@ -138,24 +138,6 @@ class ProcessJob:
     def kill(self) -> None:
         self._signal(signal.SIGKILL)
         self.proc.wait()
-
-
-def _death_signal() -> Callable[[], None] | None:
-    """PR_SET_PDEATHSIG(SIGTERM) in the child, so that a killed sweep leaves no runs behind (Linux only)."""
-    if not sys.platform.startswith("linux"):
-        return None
-    try:
-        prctl = ctypes.CDLL(None, use_errno=True).prctl
-    except (OSError, AttributeError):
-        return None
-    parent = os.getpid()
-
-    def setup() -> None:
-        prctl(1, int(signal.SIGTERM), 0, 0, 0)
-        if os.getppid() != parent:
-            os.kill(os.getpid(), signal.SIGTERM)
-
-    return setup
 
 
 def start_process(scenario: Path) -> Callable[[RunSpec], Job]:

@@ -13,6 +13,7 @@ from tests.v2vsim.recording.rrd import Recording
 from v2vsim.comm.inbox import LinkEvent
 from v2vsim.config import Scenario
 from v2vsim.geometry import Pose
+from v2vsim.metrics import MethodScore
 from v2vsim.perception import FusionInputs, Prediction
 from v2vsim.recording import bev
 from v2vsim.recording.recorder import Recorder
@@ -60,8 +61,11 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Recording:
         cams = rng.integers(0, 255, image_shape(sc), dtype=np.uint8)
         scans = {"ego": Scan("ego", k, rng.random((50, 3)).astype(np.float32), tuple(jpeg(im) for im in cams)),
                  "c1": Scan("c1", k, rng.random((40, 3)).astype(np.float32), None)}
+        score = MethodScore()  # the IoU as the ego's scoring computes it, which the recording plots
+        score.add_segmentation(maps, _gt())
         rec.log_frame(k, _world(k), _gt(), np.array([[5.0, 1.0, 4.5, 1.8, 0.3]]), preds,
-                      FusionInputs(["ego", "c1"], np.zeros((2, 3), np.float32)), links, scans)
+                      FusionInputs(["ego", "c1"], np.zeros((2, 3), np.float32)), links, scans,
+                      {m: score.vehicle.last_iou for m in preds})
     rec.close()
     return Recording(path)
 
