@@ -185,6 +185,9 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
                 print(f"v2vsim-ego {me}: the driver died {_after(k)}; writing results and stopping",
                       file=sys.stderr, flush=True)
                 break
+            if got == "interrupted":  # Ctrl-C reached the driver before it reached us
+                status = f"interrupted after {frames_done} frames"
+                break
             if isinstance(got, str):
                 status = f"ended early: the driver stopped {_after(k)} ({got})"
                 break
@@ -422,7 +425,7 @@ def _notify(box: Mailbox) -> None:
 def _wait_world(box: Mailbox, bus: Bus, k: int, realtime: bool) -> tuple[int, bytes] | str:
     """World k (lockstep), or the newest world from k on (realtime: frames we fell behind on are skipped),
     or why none will come: "done" (the driver finished), "died" (its token dropped without a bye or
-    done), or the reason it gave in its bye (it stopped)."""
+    done), "interrupted" (it was stopped by SIGINT: the run's Ctrl-C), or the reason it gave in its bye."""
     gone_at = None
     with box.cond:
         while True:
@@ -442,6 +445,8 @@ def _wait_world(box: Mailbox, bus: Bus, k: int, realtime: bool) -> tuple[int, by
             if gone:
                 gone_at = gone_at or now
                 bye = bus.farewell(DRIVER)
+                if bye is not None and bye.get("code") == 128 + signal.SIGINT:
+                    return "interrupted"
                 if bye is not None:
                     return f"exit {bye.get('code')}: {bye.get('why', '')}"
                 if now - gone_at > DRIVER_GRACE_S:

@@ -237,8 +237,10 @@ def test_the_ego_stops_by_itself_when_the_driver_dies(monkeypatch: pytest.Monkey
     t0 = time.monotonic()
     assert ego_mod._wait_world(box, DriverState(gone=True), 0, False) == "died"  # token gone, no bye
     assert 0.9 < time.monotonic() - t0 < 3
-    bye = {"name": "driver.main", "code": 130, "why": "stopped by signal 2"}
-    assert ego_mod._wait_world(box, DriverState(gone=True, bye=bye), 0, False) == "exit 130: stopped by signal 2"
+    bye = {"name": "driver.main", "code": 143, "why": "stopped by signal 15"}
+    assert ego_mod._wait_world(box, DriverState(gone=True, bye=bye), 0, False) == "exit 143: stopped by signal 15"
+    bye = {"name": "driver.main", "code": 130, "why": "stopped by signal 2"}  # Ctrl-C reached the driver first
+    assert ego_mod._wait_world(box, DriverState(gone=True, bye=bye), 0, False) == "interrupted"
     ego_mod._set_done(box)
     assert ego_mod._wait_world(box, DriverState(gone=False, authenticated=True), 0, False) == "done"  # verified
     assert ego_mod._wait_world(box, DriverState(gone=True), 0, False) == "done"  # the driver finished and left
