@@ -47,7 +47,7 @@ from agents.common import (
 from agents.progress import report_progress
 from v2vsim.comm.inbox import Inbox, LinkEvent, distance
 from v2vsim.comm.stats import CommStats
-from v2vsim.comm.wire_spec import EgoDecoder, ego_wire_spec
+from v2vsim.comm.wire_spec import EgoDecoder, ego_wire_spec, message_kind
 from v2vsim.evaluate import box_iou, predict_all, score_all
 from v2vsim.geometry import Pose, relative_pose
 from v2vsim.gt import bev_ground_truth, gt_boxes
@@ -395,7 +395,7 @@ def _count_rejected(inboxes: dict[str, Inbox], kind: str, reason: str) -> None:
 
 
 def _bytes_for(method: str, inboxes: dict[str, Inbox]) -> int:
-    kind = {"early": "points", "late": "outputs", "none": None}.get(method, "features")
+    kind = message_kind(method)
     return 0 if kind is None else inboxes[kind].bytes_this_frame
 
 

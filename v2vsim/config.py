@@ -183,6 +183,9 @@ class CommConfig:
     channel_compression: int = _f(1, "1 (off) or a reduction ratio such as 8, 16, 32, 64", _pos)
     auth: AuthConfig = field(default_factory=AuthConfig)
     channel: ChannelConfig = field(default_factory=ChannelConfig)
+    # per_link: every (sender, receiver) link has its own data rate; shared: one broadcast channel for every
+    # CAV, one transmission at a time, with its busy ratio measured (v2vsim/comm/medium.py)
+    medium: Literal["per_link", "shared"] = "per_link"
 
 
 @dataclass(frozen=True)
@@ -483,6 +486,9 @@ def _check_cross_fields(sc: Scenario, loader: _Loader) -> None:
         loader.fail("cavs.ego", "an empty list; allowed: 'first', 'all' or a list of CAV ids")
     if sc.comm.drop.model == "gilbert_elliott" and sc.comm.drop.p_bg == 0 and sc.comm.drop.p_gb > 0:
         loader.fail("comm.drop.p_bg", "0 with p_gb > 0 never leaves the bad state; allowed: 0 < p_bg <= 1")
+    if sc.comm.medium == "shared" and sc.comm.bandwidth_mbps is None and sc.comm.channel.model != "tr37885":
+        loader.fail("comm.medium", "'shared' needs a data rate to share: set comm.bandwidth_mbps (e.g. 27) "
+                    "or comm.channel.model tr37885 (the MCS rate)")
     if not math.isfinite(sc.duration_s * sc.rate_hz):
         loader.fail("duration_s", f"{sc.duration_s:g} s at rate_hz {sc.rate_hz:g} is more frames than can be counted")
     _check_egos(sc, loader)

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from v2vsim.comm.stats import CommStats
+from v2vsim.comm.wire_spec import message_kind
 from v2vsim.config import Scenario
 from v2vsim.metrics import MethodScore, neighbour_shares
 
@@ -50,7 +51,8 @@ def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: Comm
         "modality": sc.perception.modality,
         "real_time_factor": round(sim_s / summary.wall_s, 3) if summary.wall_s > 0 else None,
         "comm": comm_doc,
-        "methods": {m: scores[m].to_json(iou_fn) for m in summary.methods if m in scores},
+        "methods": {m: {**scores[m].to_json(iou_fn), **_method_cbr(m, comm, comm_by_kind)}
+                    for m in summary.methods if m in scores},
         "ego": summary.ego,
         "status": summary.status,
         "lost_agents": summary.lost_agents,
@@ -73,6 +75,17 @@ def _fmt(v: float | int | None, pct: bool = False) -> str:
     if isinstance(v, int):
         return str(v)
     return f"{100 * v:.1f}" if pct else f"{v:.3f}"
+
+
+def _method_cbr(method: str, comm: CommStats, comm_by_kind: dict[str, CommStats]) -> dict:
+    """Under comm.medium shared: the busy ratio of the channel carrying this method's messages (a sweep
+    column); {} on per-link channels, and for `none`, which sends nothing."""
+    kind = message_kind(method)
+    stats = comm if kind == "features" else comm_by_kind.get(kind or "")
+    if stats is None or stats.medium is None:
+        return {}
+    cbr = stats.to_json()["cbr"]
+    return {"cbr_mean": cbr["mean"], "cbr_p95": cbr["p95"]}
 
 
 def report_md(doc: dict, summary: RunSummary) -> str:
@@ -121,6 +134,7 @@ def report_md(doc: dict, summary: RunSummary) -> str:
               f"p={sc.comm.drop.p:g}, bandwidth {sc.comm.bandwidth_mbps} Mbps, max age {sc.comm.max_age_ms:g} ms, "
               f"pose noise {sc.comm.pose_noise.xy_std_m:g} m / {sc.comm.pose_noise.yaw_std_deg:g}°.",
               *_link_states_md(doc, summary),
+              *_medium_md(doc),
               *_neighbours_md(doc, summary),
               "", "## Reference (CoBEVT paper, OPV2V; real data, trained models)", "",
               "| method | camera IoU vehicle / road / lane | LiDAR AP@0.7 |", "|---|---|---|"]
@@ -148,6 +162,23 @@ def _link_states_md(doc: dict, summary: RunSummary) -> list[str]:
     for state, bins in (c.get("delivery_by_distance") or {}).items():
         cells = [f"{bins[b]['ratio']:.2f} ({bins[b]['sent']})" if b in bins else "-" for b in _distance_bins(c)]
         lines.append(f"| {state} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _medium_md(doc: dict) -> list[str]:
+    """Under comm.medium shared: the channel busy ratio and what senders dropped, per message kind."""
+    kinds = {"features": doc["comm"], **doc["comm"].get("by_kind", {})}
+    rows = [(k, c) for k, c in kinds.items() if "cbr" in c]
+    if not rows:
+        return []
+    lines = ["", "Shared medium (`comm.medium: shared`): one broadcast channel for every CAV, one transmission at a "
+             "time; channel busy ratio (CBR) per 100 ms window, as if the fleet sent only that kind:", "",
+             "| message kind | rate Mbps | CBR mean | CBR p95 | airtime s | sent on air | superseded | too old |",
+             "|---|---|---|---|---|---|---|---|"]
+    for kind, c in rows:
+        cbr, med = c["cbr"], c["medium"]
+        lines.append(f"| {kind} | {med['rate_mbps']:g} | {_fmt(cbr['mean'])} | {_fmt(cbr['p95'])} | "
+                     f"{med['airtime_s']:.2f} | {med['transmissions']} | {med['superseded']} | {med['aged_out']} |")
     return lines
 
 

@@ -72,6 +72,15 @@ def serialisation_delay(size_bytes: int, bandwidth_mbps: float | None) -> float:
     return size_bytes * 8.0 / (bandwidth_mbps * 1e6)
 
 
+def data_rate_mbps(cfg: CommConfig) -> float | None:
+    """The rate messages are serialised at (Mbps; None = unlimited): comm.bandwidth_mbps, and under tr37885 the
+    MCS rate, or bandwidth_mbps where that is lower."""
+    if cfg.channel.model != "tr37885":
+        return cfg.bandwidth_mbps
+    mcs_rate = tr37885.mcs_rate_mbps(cfg.channel.mcs, cfg.channel.bandwidth_mhz)
+    return mcs_rate if cfg.bandwidth_mbps is None else min(mcs_rate, cfg.bandwidth_mbps)
+
+
 def is_stale(capture_time: float, now: float, max_age_ms: float) -> bool:
     """True when a message captured at capture_time is older than max_age_ms at `now`."""
     return (now - capture_time) > max_age_ms / 1000.0 + _STALE_EPS_S
@@ -115,10 +124,7 @@ class LinkModel:
         self.radio = cfg.channel.model == "tr37885"
         self._radio_rng = np.random.Generator(np.random.PCG64(link_seed_sequence(seed, sender, receiver, 2)))
         self.shadowing: tr37885.Shadowing | None = None
-        self.rate_mbps = cfg.bandwidth_mbps
-        if self.radio:
-            mcs_rate = tr37885.mcs_rate_mbps(cfg.channel.mcs, cfg.channel.bandwidth_mhz)
-            self.rate_mbps = mcs_rate if cfg.bandwidth_mbps is None else min(mcs_rate, cfg.bandwidth_mbps)
+        self.rate_mbps = data_rate_mbps(cfg)
 
     def _jitter_s(self, u: float, z: float) -> float:
         lat = self.cfg.latency_ms
@@ -146,10 +152,11 @@ class LinkModel:
         raise ValueError(f"unknown drop model {drop.model!r}")
 
     def transmit(self, size_bytes: int, send_time: float, distance_m: float,
-                 geometry: LinkGeometry | None = None) -> Delivery:
+                 geometry: LinkGeometry | None = None, start: float | None = None) -> Delivery:
         """Decide the fate of one message of size_bytes sent at send_time over distance_m.
 
-        `geometry` (the two poses and the world at send time) is required under tr37885 and unused under disk."""
+        `geometry` (the two poses and the world at send time) is required under tr37885 and unused under disk.
+        `start`: when serialisation starts, if a shared medium decided it (v2vsim/comm/medium.py)."""
         u_state, u_loss, u_jit = self._rng.random(3)
         z_jit = self._rng.standard_normal()
         lost = self._lost(float(u_loss), float(u_state))
@@ -167,7 +174,8 @@ class LinkModel:
         if not distance_m <= self.cfg.range_m:  # NaN distance counts as out of range
             return Delivery(False, "out_of_range", math.inf, send_time)
         ser = serialisation_delay(size_bytes, self.rate_mbps)
-        start = max(send_time, self.busy_until) if self.queueing else send_time
+        if start is None:
+            start = max(send_time, self.busy_until) if self.queueing else send_time
         self.busy_until = start + ser
         state, snr = (rx.state, rx.snr_db) if rx is not None else (None, None)
         if lost or (rx is not None and not rx.received):

@@ -4,6 +4,10 @@ and at fusion time the newest delivered, non-stale message per sender is handed 
 One `LinkModel` per (sender, receiver, message kind), all seeded from (seed, sender, receiver):
 the kinds share one random stream, so the same frames are lost for every method and only the
 serialisation delay differs with the message size. The receiver's own message skips the channel.
+
+comm.medium shared: each kind also has one `SharedMedium` that every CAV's broadcast of that kind
+(the receiver's own included) queues on; a message's link is judged when the medium starts it, so
+its delivery waits for the channel, and one dropped at the sender (superseded or too old) is lost.
 """
 
 from __future__ import annotations
@@ -12,8 +16,9 @@ import math
 from dataclasses import dataclass
 from typing import Literal
 
-from v2vsim.comm.channel import LinkModel, is_stale
+from v2vsim.comm.channel import Delivery, LinkModel, data_rate_mbps, is_stale
 from v2vsim.comm.codec import Message
+from v2vsim.comm.medium import SharedMedium
 from v2vsim.comm.stats import CommStats
 from v2vsim.comm.tr37885 import LinkGeometry
 from v2vsim.config import CommConfig
@@ -45,6 +50,16 @@ class LinkEvent:
     latency_ms: float | None = None
 
 
+@dataclass(frozen=True)
+class _OnAir:
+    """A message waiting for the shared medium, with what its link needs to judge it."""
+
+    message: Message
+    size: int
+    distance_m: float
+    geometry: LinkGeometry | None
+
+
 class Inbox:
     """Messages of one kind for one receiver. Not thread-safe: feed it from the fusing thread."""
 
@@ -62,6 +77,13 @@ class Inbox:
         self._fused: set[tuple[str, int]] = set()  # (sender, frame) whose send-to-fuse latency is recorded
         self._events: dict[str, LinkEvent] = {}  # per sender, since the last take_events()
         self.bytes_this_frame = 0
+        self.medium: SharedMedium[_OnAir] | None = None
+        if cfg.medium == "shared":
+            rate = data_rate_mbps(cfg)
+            if rate is None:
+                raise ValueError("comm.medium shared needs comm.bandwidth_mbps or comm.channel.model tr37885")
+            self.medium = SharedMedium(rate, cfg.max_age_ms / 1000.0, seed)
+            self.stats.track_medium()
 
     def link(self, sender: str) -> LinkModel:
         if sender not in self._links:
@@ -74,23 +96,55 @@ class Inbox:
 
         Under comm.channel.model tr37885 the link also needs the receiver's pose when the message was sent (the
         sender's is msg.sender_pose) and the world whose buildings and vehicles may block it; disk ignores both."""
-        if msg.sender_id == self.receiver:
+        own = msg.sender_id == self.receiver
+        if own:
             self._pending.setdefault(msg.sender_id, []).append(Arrival(msg, size, send_time))
-            return
-        self.bytes_this_frame += size  # what crossed the air; the receiver's own message did not
-        self.stats.record_sent(size)
         geometry = None
-        if self.cfg.channel.model == "tr37885":
+        if self.cfg.channel.model == "tr37885" and not own:
             if receiver_pose is None:
                 raise ValueError("comm.channel.model tr37885: Inbox.offer needs receiver_pose")
             geometry = LinkGeometry(tuple(msg.sender_pose), tuple(receiver_pose), world)
+        if self.medium is not None:  # the own broadcast takes airtime too
+            self.medium.enqueue(msg.sender_id, msg.frame, size, send_time, msg.capture_time,
+                                _OnAir(msg, size, distance_m, geometry))
+            if not own:
+                self.bytes_this_frame += size
+                self.stats.record_sent(size)
+                self._events[msg.sender_id] = LinkEvent(msg.sender_id, "in_flight")  # waiting for the channel
+            return
+        if own:
+            return
+        self.bytes_this_frame += size  # what crossed the air; the receiver's own message did not
+        self.stats.record_sent(size)
         d = self.link(msg.sender_id).transmit(size, send_time, distance_m, geometry)
+        self._judge(msg, size, d, distance_m)
+
+    def _judge(self, msg: Message, size: int, d: Delivery, distance_m: float) -> None:
         self.stats.record_channel(d, distance_m)
         if d.delivered:
             self._pending.setdefault(msg.sender_id, []).append(Arrival(msg, size, d.arrival_time, d.latency))
             self._events[msg.sender_id] = LinkEvent(msg.sender_id, "in_flight", d.latency * 1e3)
         else:
             self._events[msg.sender_id] = LinkEvent(msg.sender_id, d.reason)
+
+    def _dropped_at_sender(self, on_air: _OnAir) -> None:
+        if on_air.message.sender_id != self.receiver:
+            self.stats.record_channel(Delivery(False, "dropped", math.inf, on_air.message.capture_time))
+            self._events[on_air.message.sender_id] = LinkEvent(on_air.message.sender_id, "dropped")
+
+    def _advance_medium(self, now: float) -> None:
+        """Judge, on its link, every message the shared medium starts by `now`."""
+        assert self.medium is not None
+        started, dropped = self.medium.advance(now)
+        for on_air in dropped:
+            self._dropped_at_sender(on_air)
+        for tx in started:
+            m = tx.item.message
+            if m.sender_id == self.receiver:
+                continue
+            d = self.link(m.sender_id).transmit(tx.size, tx.ready, tx.item.distance_m, tx.item.geometry, start=tx.start)
+            self._judge(m, tx.size, d, tx.item.distance_m)
+        self.stats.record_medium(self.medium, self.medium.take_cbr(now))
 
     def mark_rejected(self, sender: str) -> None:
         """A message from `sender` failed decoding (already counted in stats by the decoder)."""
@@ -105,6 +159,8 @@ class Inbox:
 
     def ready(self, now: float) -> dict[str, Message]:
         """The newest message per sender that has arrived by `now` and is not older than max_age_ms."""
+        if self.medium is not None:
+            self._advance_medium(now)
         out: dict[str, Message] = {}
         for sender, queue in self._pending.items():
             arrived = [a for a in queue if a.arrival_time <= now]

@@ -13,6 +13,12 @@ Under comm.channel.model tr37885 (only then; disk output is unchanged) also:
   los, nlos, nlosv       messages within range by link state (delivered or not);
   delivery_by_distance   per link state and DISTANCE_BIN_M-wide bin of the sender-receiver distance
                          ("0-25", "25-50", ...): {"sent", "delivered", "ratio"} of those messages.
+Under comm.medium shared (only then) also:
+  cbr      the channel busy ratio of each 100 ms window: {"mean", "p95", "windows"};
+  medium   {"rate_mbps", "transmissions", "airtime_s", "superseded", "aged_out"}: what the shared
+           channel carried (every CAV's broadcasts of this kind) and what senders dropped before
+           sending (a newer message replaced it; it would have started older than max_age_ms).
+           Messages dropped at their sender also count in `dropped`.
 Not thread-safe: update it from the one thread that consumes messages.
 """
 
@@ -26,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from v2vsim.comm.channel import Delivery
+from v2vsim.comm.medium import SharedMedium
 from v2vsim.comm.tr37885 import LINK_STATES
 
 DISTANCE_BIN_M = 25.0  # width of the delivery_by_distance bins (m)
@@ -46,6 +53,8 @@ class CommStats:
         self.lost_agents: set[str] = set()
         self.link_states: Counter[str] | None = None  # None: no link states (disk); see track_link_states
         self.by_distance: Counter[tuple[str, int, bool]] = Counter()  # (state, bin, delivered) -> messages
+        self.medium: dict[str, float] | None = None  # None: per-link channel; see track_medium
+        self.cbr: list[float] = []  # per 100 ms window
 
     @property
     def rejected(self) -> int:
@@ -61,6 +70,18 @@ class CommStats:
         if self.link_states is None:
             self.link_states = Counter()
         return self.link_states
+
+    def track_medium(self) -> dict[str, float]:
+        """Report the shared medium (cbr, medium) even before anything went on the air."""
+        if self.medium is None:
+            self.medium = {"rate_mbps": 0.0, "transmissions": 0, "airtime_s": 0.0, "superseded": 0, "aged_out": 0}
+        return self.medium
+
+    def record_medium(self, medium: SharedMedium, cbr: list[float]) -> None:
+        """The medium's running totals (they replace the previous ones) and newly completed CBR windows."""
+        self.medium = {"rate_mbps": medium.rate_mbps, "transmissions": medium.transmissions,
+                       "airtime_s": medium.airtime_s, "superseded": medium.superseded, "aged_out": medium.aged_out}
+        self.cbr.extend(cbr)
 
     def record_channel(self, d: Delivery, distance_m: float | None = None) -> None:
         """Count the channel model's verdict on one message (sent over distance_m, for the distance bins)."""
@@ -102,6 +123,11 @@ class CommStats:
         if other.link_states is not None:
             self.track_link_states().update(other.link_states)
         self.by_distance.update(other.by_distance)
+        if other.medium is not None:
+            mine = self.track_medium()
+            for key, v in other.medium.items():
+                mine[key] = max(mine[key], v) if key == "rate_mbps" else mine[key] + v
+        self.cbr.extend(other.cbr)
         return self
 
     def latency_percentile_ms(self, q: float) -> float | None:
@@ -141,6 +167,12 @@ class CommStats:
         if self.link_states is not None:
             doc.update({s: self.link_states[s] for s in LINK_STATES})
             doc["delivery_by_distance"] = self.delivery_by_distance()
+        if self.medium is not None:
+            cbr = np.asarray(self.cbr, dtype=float)
+            doc["cbr"] = {"mean": round(float(cbr.mean()), 4) if cbr.size else None,
+                          "p95": round(float(np.percentile(cbr, 95)), 4) if cbr.size else None,
+                          "windows": int(cbr.size)}
+            doc["medium"] = {k: (round(v, 4) if isinstance(v, float) else v) for k, v in self.medium.items()}
         return doc
 
     def to_state(self) -> dict[str, Any]:
@@ -150,7 +182,8 @@ class CommStats:
                 "rejected_reasons": dict(self.rejected_reasons), "bytes_sent": self.bytes_sent,
                 "latency_s": list(self.latency_s), "lost_agents": sorted(self.lost_agents),
                 "link_states": None if self.link_states is None else dict(self.link_states),
-                "by_distance": [[s, b, ok, n] for (s, b, ok), n in sorted(self.by_distance.items())]}
+                "by_distance": [[s, b, ok, n] for (s, b, ok), n in sorted(self.by_distance.items())],
+                "medium": self.medium, "cbr": list(self.cbr)}
 
     @classmethod
     def from_state(cls, state: dict[str, Any]) -> CommStats:
@@ -164,6 +197,9 @@ class CommStats:
         if state.get("link_states") is not None:  # absent in states written before tr37885
             s.link_states = Counter({str(k): int(v) for k, v in state["link_states"].items()})
         s.by_distance = Counter({(str(st), int(b), bool(ok)): int(n) for st, b, ok, n in state.get("by_distance", [])})
+        if state.get("medium") is not None:
+            s.medium = dict(state["medium"])
+        s.cbr = [float(v) for v in state.get("cbr", [])]
         return s
 
     def __repr__(self) -> str:

@@ -32,6 +32,11 @@ BOX_FIELDS = 6  # x, y, l, w, yaw, score (v2vsim.perception.late_outputs)
 DECODER_UPSAMPLING = 8  # late outputs are 8x the encoder grid
 
 
+def message_kind(method: str) -> str | None:
+    """The message kind a fusion method fuses (None: `none` fuses nothing)."""
+    return {"early": "points", "late": "outputs", "none": None}.get(method, "features")
+
+
 def ego_wire_spec(sc: Scenario, encoder_out_channels: int, encoder_out_cells: int) -> dict[str, KindSpec]:
     """The KindSpec of each message kind the ego of `sc` may receive (see the module docstring)."""
     c, f = encoder_out_channels, encoder_out_cells
