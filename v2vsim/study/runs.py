@@ -41,8 +41,9 @@ class RunSpec:
     grid: tuple[str, ...]  # the point's overrides, KEY=VALUE
     request: dict  # scenario digest, overrides (seed first), frames: what makes two runs the same run
 
-    def argv(self, scenario: Path) -> list[str]:
-        args = ["-m", "v2vsim.cli", "run", str(scenario), "--out", str(self.out)]
+    def argv(self, scenario: Path, out: Path | None = None) -> list[str]:
+        """`python` arguments of the run (`out`: write elsewhere than self.out, e.g. on a cluster worker)."""
+        args = ["-m", "v2vsim.cli", "run", str(scenario), "--out", str(out or self.out)]
         args += [x for o in self.request["overrides"] for x in ("--set", o)]
         if self.request["frames"] is not None:
             args += ["--frames", str(self.request["frames"])]

@@ -33,10 +33,12 @@ class SweepArgs:
     seeds: str
     out: Path
     frames: int | None = None
-    jobs: int = 1
+    jobs: int | None = None  # default: 1 locally, the cluster's worker threads under dask
     overrides: tuple[str, ...] = ()
     methods: str | None = None
     bootstrap: int = DEFAULT_B
+    engine: str = "local"  # local | dask (v2vsim/study/cluster.py)
+    scheduler: str | None = None  # dask: the scheduler's address, e.g. tcp://10.0.0.1:8786
 
 
 @dataclass(frozen=True)
@@ -56,8 +58,12 @@ def prepare(args: SweepArgs) -> Design:
     """Parse and validate everything (ConfigError names the bad option, key or value); nothing runs."""
     if args.frames is not None and args.frames < 1:
         raise ConfigError(f"--frames {args.frames}: expected a number of frames >= 1")
-    if args.jobs < 1:
+    if args.jobs is not None and args.jobs < 1:
         raise ConfigError(f"--jobs {args.jobs}: expected >= 1")
+    if args.engine not in ("local", "dask"):
+        raise ConfigError(f"--engine {args.engine}: allowed: local, dask")
+    if (args.engine == "dask") != (args.scheduler is not None):
+        raise ConfigError("--engine dask needs --scheduler ADDRESS (and --scheduler goes with --engine dask)")
     if args.bootstrap < 100:
         raise ConfigError(f"--bootstrap {args.bootstrap}: expected >= 100 resamples")
     scenario = Path(args.scenario).resolve()
@@ -76,15 +82,26 @@ def sweep(args: SweepArgs, start: Callable[[RunSpec], Job] | None = None, stream
     """Run the sweep and write its files; the exit code (0, 1 if a run failed, 130 when interrupted)."""
     d = prepare(args)
     stream = stream or sys.stderr
+    client = None
+    jobs = args.jobs or 1
+    if start is None and args.engine == "dask":
+        from v2vsim.study.cluster import DaskJob, connect, worker_threads
+
+        client = connect(args.scheduler or "")
+        jobs = args.jobs or worker_threads(client)
+        start = lambda spec: DaskJob(client, spec, d.scenario)  # noqa: E731
+    where = f" on the Dask cluster at {args.scheduler}" if client is not None else ""
     print(f"v2vsim sweep: {len(d.points)} point(s) x {len(d.seeds)} seed(s) = {len(d.specs)} runs, "
-          f"{args.jobs} at a time -> {args.out}", file=stream)
+          f"{jobs} at a time{where} -> {args.out}", file=stream)
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler)  # `kill` stops it like Ctrl-C
     try:
-        results, interrupted = execute(d.specs, args.jobs, start or start_process(d.scenario),
-                                       Progress(len(d.specs), args.jobs, stream))
+        results, interrupted = execute(d.specs, jobs, start or start_process(d.scenario),
+                                       Progress(len(d.specs), jobs, stream))
         paths = write_outputs(args, d, results, interrupted)
     finally:
         signal.signal(signal.SIGTERM, previous)
+        if client is not None:
+            client.close()
     failed = [r for r in results if not r.ok]
     print(f"v2vsim sweep: {'interrupted' if interrupted else 'done'}: {sum(r.ok for r in results)} of "
           f"{len(d.specs)} runs complete, {len(failed)} failed; {paths[0]}", file=stream)
@@ -105,7 +122,7 @@ def write_outputs(args: SweepArgs, d: Design, results: Sequence[RunResult], inte
     failed = [{"point": ", ".join(r.spec.grid), "seed": r.spec.seed, "code": r.code, "why": r.why,
                "tail": list(r.tail), "log": str(r.spec.out / LOG)} for r in results if not r.ok]
     meta = {"scenario": str(args.scenario), "scenario_name": d.name, "seeds": d.seeds, "frames": args.frames,
-            "points": [p.pid for p in d.points], "overrides": d.base, "jobs": args.jobs,
+            "points": [p.pid for p in d.points], "overrides": d.base, "jobs": args.jobs, "engine": args.engine,
             "bootstrap": {"b": args.bootstrap, "rng_seed": DEFAULT_RNG_SEED, "level": LEVEL,
                           "method": "paired two-level bootstrap (seeds, then frames within each seed), "
                                     "expanded percentile intervals"},
