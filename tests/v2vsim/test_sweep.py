@@ -433,3 +433,20 @@ def test_dask_engine_options_are_checked(tmp_path: Path) -> None:
     r = subprocess.run([*base, "--engine", "dask", "--scheduler", "tcp://127.0.0.1:9"], capture_output=True,
                        text=True, cwd=REPO, timeout=60)
     assert r.returncode == 2 and "no Dask scheduler answered" in r.stderr, r.stderr
+
+
+def test_retrained_weights_rerun_every_run(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import io
+
+    from v2vsim.study import plots
+
+    monkeypatch.setattr(runs_mod.time, "sleep", lambda s: None)
+    monkeypatch.setattr(plots, "plot_all", lambda *a, **k: [])
+    out = tmp_path / "sweep"
+    assert sweep(_args(out), start=FakeStarter(), stream=io.StringIO()) == 0
+    again = FakeStarter()
+    assert sweep(_args(out), start=again, stream=io.StringIO()) == 0 and not again.started
+    assert json.loads(next(out.glob("runs/*/seed0/sweep_run.json")).read_text())["weights"]  # the manifest's sha256
+    monkeypatch.setattr(runs_mod, "weights_fingerprint", lambda *a: "another zoo")
+    again = FakeStarter()
+    assert sweep(_args(out), start=again, stream=io.StringIO()) == 0 and len(again.started) == 6

@@ -2,9 +2,9 @@
 with one progress line over runs on stderr; Ctrl-C stops the children cleanly.
 
 A run counts as done when its metrics.json says status "complete" and its `sweep_run.json` (what the
-sweep asked for: the scenario as loaded with the run's overrides, and the frames) matches the current
-request; anything else is (re)run. A run's own output (its progress lines, errors) goes to
-`sweep-run.log` in its directory.
+sweep asked for: the scenario as loaded with the run's overrides, the frames, and the sha256 of the
+weights it loads) matches the current request; anything else is (re)run. A run's own output (its
+progress lines, errors) goes to `sweep-run.log` in its directory.
 """
 
 from __future__ import annotations
@@ -77,15 +77,29 @@ def effective_config(scenario: Path, overrides: Sequence[str]) -> dict:
     return json.loads(json.dumps(doc, default=str))
 
 
+def weights_fingerprint(scenario: Path, overrides: Sequence[str]) -> str | None:
+    """What identifies the weights a run loads: the zoo manifest's sha256 (it holds every checkpoint's) under
+    `weights: auto`, the checkpoint's own for a path, None for untrained; so that a retrained zoo reruns."""
+    from models.zoo import MANIFEST, WEIGHTS_DIR, sha256
+
+    sc = load_scenario(scenario, overrides)
+    w = sc.perception.weights
+    if w == "none":
+        return None
+    path = WEIGHTS_DIR / MANIFEST if w == "auto" else Path(w)
+    return sha256(path) if path.is_file() else None
+
+
 def plan(scenario: Path, axes: Sequence[Axis], pts: Sequence[Point], seeds: Sequence[int], base: Sequence[str],
          frames: int | None, out: Path) -> list[RunSpec]:
     """Every (point, seed) run, point-major: the same seeds at every point (a paired design)."""
     specs = []
     for p in pts:
         config = effective_config(scenario, [*p.overrides(axes), *base])
+        weights = weights_fingerprint(scenario, [*p.overrides(axes), *base])
         for s in seeds:
             request = {"scenario": str(scenario), "overrides": [f"seed={s}", *p.overrides(axes), *base],
-                       "frames": frames, "config": config | {"seed": s}}
+                       "frames": frames, "config": config | {"seed": s}, "weights": weights}
             specs.append(RunSpec(p, s, out / "runs" / p.pid / f"seed{s}", tuple(p.overrides(axes)), request))
     return specs
 
@@ -110,7 +124,10 @@ def is_done(spec: RunSpec) -> bool:
     except (OSError, ValueError):
         return False
     same = ("config", "frames")  # not the spelling of the overrides
-    return isinstance(asked, dict) and all(asked.get(k) == spec.request[k] for k in same)
+    if not isinstance(asked, dict) or any(asked.get(k) != spec.request[k] for k in same):
+        return False
+    # other weights (a retrained zoo) are another run; requests written before weights were recorded count
+    return "weights" not in asked or asked["weights"] == spec.request.get("weights")
 
 
 class ProcessJob:
