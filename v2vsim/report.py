@@ -10,8 +10,9 @@ from pathlib import Path
 import numpy as np
 
 from v2vsim.comm.stats import CommStats
+from v2vsim.comm.tr37885 import expected_delivery
 from v2vsim.comm.wire_spec import message_kind
-from v2vsim.config import Scenario
+from v2vsim.config import ChannelConfig, Scenario
 from v2vsim.metrics import MethodScore, neighbour_shares
 
 # CoBEVT paper figures (DESIGN.md "Reference figures"): OPV2V camera IoU vehicle/road/lane, LiDAR AP@0.7.
@@ -201,7 +202,7 @@ def _neighbours_md(doc: dict, summary: RunSummary) -> list[str]:
             "| share of frames | " + " | ".join(f"{_fmt(v, True)} %" for v in shares.values()) + " |"]
 
 
-def plot(out: Path, doc: dict, scores: dict[str, MethodScore]) -> list[Path]:
+def plot(out: Path, doc: dict, scores: dict[str, MethodScore], channel: ChannelConfig | None = None) -> list[Path]:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -238,23 +239,36 @@ def plot(out: Path, doc: dict, scores: dict[str, MethodScore]) -> list[Path]:
     fig.savefig(paths[-1], dpi=100)
     plt.close(fig)
 
-    by_distance = doc["comm"].get("delivery_by_distance")
-    if by_distance is not None:
-        bins = _distance_bins(doc["comm"])
-        fig, ax = plt.subplots(figsize=(7, 4))
-        for state, per in by_distance.items():
-            xs = [sum(map(float, b.split("-"))) / 2 for b in bins if b in per]
-            ax.plot(xs, [per[b]["ratio"] for b in bins if b in per], "o-", label=state.upper())
-        ax.set_xlabel("sender-receiver distance (m, bin centre)")
-        ax.set_ylabel("delivery ratio")
-        ax.set_ylim(0, 1.05)
-        ax.set_title(f"{doc['scenario']}: delivery by distance and link state (tr37885)")
-        ax.legend()
-        fig.tight_layout()
-        paths.append(out / "delivery_by_distance.png")
-        fig.savefig(paths[-1], dpi=100)
-        plt.close(fig)
+    if doc["comm"].get("delivery_by_distance") is not None:
+        paths.append(plot_delivery_by_distance(out / "delivery_by_distance.png", doc, channel))
     return paths
+
+
+def plot_delivery_by_distance(path: Path, doc: dict, channel: ChannelConfig | None) -> Path:
+    """Delivery ratio per distance bin and link state (tr37885), with the expected LOS / NLOS curves."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    bins = _distance_bins(doc["comm"])
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for state, per in doc["comm"]["delivery_by_distance"].items():
+        xs = [sum(map(float, b.split("-"))) / 2 for b in bins if b in per]
+        line, = ax.plot(xs, [per[b]["ratio"] for b in bins if b in per], "o-", label=f"{state.upper()} (measured)")
+        if channel is not None and state != "nlosv" and bins:
+            ds = np.linspace(1.0, float(bins[-1].split("-")[1]), 120)
+            ax.plot(ds, [expected_delivery(channel, state, d) for d in ds], "--", color=line.get_color(), lw=1,
+                    label=f"{state.upper()} (TR 37.885, expected)")
+    ax.set_xlabel("sender-receiver distance (m, bin centre)")
+    ax.set_ylabel("delivery ratio")
+    ax.set_ylim(0, 1.05)
+    ax.set_title(f"{doc['scenario']}: delivery by distance and link state (tr37885)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
 
 
 def write_outputs(out: Path, summary: RunSummary, scores: dict[str, MethodScore], comm: CommStats,
@@ -265,5 +279,5 @@ def write_outputs(out: Path, summary: RunSummary, scores: dict[str, MethodScore]
     (out / "metrics.json").write_text(json.dumps(doc, indent=2))
     (out / "report.md").write_text(report_md(doc, summary))
     if doc["methods"]:
-        plot(out, doc, scores)
+        plot(out, doc, scores, summary.scenario.comm.channel)
     return doc

@@ -145,6 +145,18 @@ def mean_snr_db(cfg: ChannelConfig, loss_db: float) -> float:
     return cfg.tx_power_dbm + 2.0 * cfg.antenna_gain_dbi - loss_db - noise_dbm(cfg.bandwidth_mhz, cfg.noise_figure_db)
 
 
+def expected_delivery(cfg: ChannelConfig, state: LinkState, d_m: float) -> float:
+    """P(received) at distance d_m in a LOS or NLOS state, averaged over the shadowing N(0, SHADOW_STD_DB)
+    (Gauss-Hermite): the curve the delivery ratio of many independent links follows. NLOSv is not given: it
+    depends on the blocker's height (how many antennas are below it)."""
+    if state == "nlosv":
+        raise ValueError("expected_delivery: NLOSv depends on the blocker; only los and nlos")
+    x, w = np.polynomial.hermite_e.hermegauss(60)
+    loss = path_loss_db(state, max(d_m, MIN_DISTANCE_M), cfg.carrier_ghz, cfg.scenario) + SHADOW_STD_DB[state] * x
+    p = success_probability(mean_snr_db(cfg, loss), MCS_SNR_THRESHOLD_DB[cfg.mcs], cfg.per_slope_db)  # type: ignore[arg-type]
+    return float((w * p).sum() / w.sum())
+
+
 # ---- link state from the world's geometry -----------------------------------------------------------------------
 
 

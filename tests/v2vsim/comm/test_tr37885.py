@@ -21,6 +21,7 @@ from v2vsim.comm.tr37885 import (
     blockage_loss_db,
     blockage_moments_db,
     classify_link,
+    expected_delivery,
     lognormal_params,
     los_path_loss_db,
     mean_snr_db,
@@ -154,6 +155,15 @@ def analytic_delivery(cfg: ChannelConfig, path_loss: float, shadow_std: float) -
     thr = (4.1, 5.6, 6.5, 9.0, 11.7, 15.5, 19.9, 22.0)[cfg.mcs]
     p = 1.0 / (1.0 + np.exp(-(snr - thr) / cfg.per_slope_db))
     return float((w * p).sum() / w.sum())
+
+
+@pytest.mark.parametrize("state", ["los", "nlos"])
+def test_the_reports_expected_curve_is_the_analytic_one(state: str) -> None:
+    cfg = ChannelConfig(model="tr37885", mcs=5)
+    for d in (20.0, 80.0, 150.0, 300.0):
+        pl = path_loss_db(state, d, FC, cfg.scenario)  # type: ignore[arg-type]
+        assert expected_delivery(cfg, state, d) == pytest.approx(  # type: ignore[arg-type]
+            analytic_delivery(cfg, pl, {"los": 3.0, "nlos": 4.0}[state]), abs=1e-5)
 
 
 def _sweep(cfg: CommConfig, distances: list[float], n: int, w: WorldState | None
