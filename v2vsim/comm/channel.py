@@ -55,14 +55,14 @@ class Delivery:
         return self.arrival_time - self.send_time if self.delivered else math.inf
 
 
-def _id_entropy(text: str) -> list[int]:
+def id_entropy(text: str) -> list[int]:
     b = text.encode("utf-8")
     return [len(b), int.from_bytes(b, "little")]
 
 
 def link_seed_sequence(seed: int, sender: str, receiver: str, stream: int = 0) -> np.random.SeedSequence:
     """A stable SeedSequence for one directed link (and one independent stream on it)."""
-    return np.random.SeedSequence([int(seed), 0x76327673, stream, *_id_entropy(sender), *_id_entropy(receiver)])
+    return np.random.SeedSequence([int(seed), 0x76327673, stream, *id_entropy(sender), *id_entropy(receiver)])
 
 
 def serialisation_delay(size_bytes: int, bandwidth_mbps: float | None) -> float:

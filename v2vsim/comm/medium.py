@@ -31,6 +31,8 @@ from typing import Generic, TypeVar
 
 import numpy as np
 
+from v2vsim.comm.channel import id_entropy
+
 T = TypeVar("T")
 
 CBR_WINDOW_S = 0.1  # ETSI TS 102 687: CBR measured over 100 ms
@@ -38,8 +40,7 @@ CBR_WINDOW_S = 0.1  # ETSI TS 102 687: CBR measured over 100 ms
 
 def backoff_rank(seed: int, frame: int, sender: str) -> float:
     """A uniform draw per (seed, frame, sender) that orders messages ready at the same instant."""
-    b = sender.encode("utf-8")
-    ss = np.random.SeedSequence([int(seed), 0x6D656469, int(frame), len(b), int.from_bytes(b, "little")])
+    ss = np.random.SeedSequence([int(seed), 0x6D656469, int(frame), *id_entropy(sender)])
     return float(np.random.Generator(np.random.PCG64(ss)).random())
 
 
