@@ -30,6 +30,7 @@ from agents.common import (
     run_agent,
 )
 from v2vsim.comm.codec import Message, encode
+from v2vsim.comm.share import feature_message
 from v2vsim.geometry import Pose
 from v2vsim.gt import visible_actor_ids
 from v2vsim.perception import (
@@ -39,6 +40,7 @@ from v2vsim.perception import (
     build_method_models,
     compress,
     late_outputs,
+    vehicle_confidence,
 )
 from v2vsim.perception import encode as encode_features
 from v2vsim.recording.scan import encode_scan, world_points
@@ -59,6 +61,9 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
     encoder = build_agent_encoder(sc)
     compressor = build_compressor(sc, encoder.out_channels)
     late_model = build_method_models(sc, encoder, ("late",))["late"] if "late" in methods else None
+    # comm.share topk: the CAV ranks its cells by its own single-agent confidence; an ego keeps its whole map
+    share = sc.comm.share.fraction if sc.comm.share.policy == "topk" and me not in args.egos else 1.0
+    single = build_method_models(sc, encoder, ("none",))["none"] if share < 1.0 else None
     static = static_from_bytes(bus.fetch("static", "main", START_TIMEOUT_S))
     assets = build_map_assets(static)
     worlds: queue.Queue[bytes] = queue.Queue()
@@ -127,9 +132,13 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
                 feats = encode_features(encoder, sf, sc)
             stamp = {"run_id": args.run_id, "sender_id": me, "frame": world.frame, "capture_time": world.time,
                      "sender_pose": actor.pose.as_tuple(), "compression": sc.comm.compression}
+            confidence = None
+            if single is not None:
+                with timer.stage("decoding"):
+                    confidence = vehicle_confidence(single, feats)
             with timer.stage("comm"):
-                bus.put("features", encode(Message(kind="features", payload=compress(compressor, feats),
-                                                   channel_compression=sc.comm.channel_compression, **stamp), key))
+                bus.put("features", encode(feature_message(compress(compressor, feats), confidence, share, stamp,
+                                                           sc.comm.channel_compression), key))
                 if "early" in methods and lidar:
                     bus.put("points", encode(Message(kind="points", payload=body_frame_points(sf, sc), **stamp), key))
             if late_model is not None:

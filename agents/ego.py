@@ -46,6 +46,7 @@ from agents.common import (
 )
 from agents.progress import report_progress
 from v2vsim.comm.inbox import Inbox, LinkEvent, distance
+from v2vsim.comm.share import dense_payload
 from v2vsim.comm.stats import CommStats
 from v2vsim.comm.wire_spec import EgoDecoder, ego_wire_spec, message_kind
 from v2vsim.evaluate import box_iou, predict_all, score_all
@@ -540,7 +541,8 @@ def _collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str],
             x, y, z, yaw = inboxes[kind].sender_pose(msg)
             rel[i] = relative_pose(ego_pose, Pose(x, y, z, yaw))
             if kind == "features":
-                inp.features[s] = msg.payload  # float16 [C/r, F, F]; decompress() makes it float32 [C, F, F]
+                # float16 [C/r, F, F] (a sparse message scattered back); decompress() makes it float32 [C, F, F]
+                inp.features[s] = dense_payload(msg, decoder.spec["features"].payload)
             elif kind == "points":
                 inp.points[s] = msg.payload.astype(np.float32)
             else:

@@ -145,6 +145,30 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
                            bootstrap=args.bootstrap, engine=args.engine, scheduler=args.scheduler))
 
 
+def _cmd_bandwidth(args: argparse.Namespace) -> int:
+    from v2vsim.data.record import parse_seeds
+    from v2vsim.env.bandwidth import bandwidth_curve, parse_fractions
+
+    try:
+        seeds, fractions = parse_seeds(args.seeds), parse_fractions(args.fractions)
+    except ValueError as e:
+        print(f"v2vsim: error: {e}", file=sys.stderr)
+        return 2
+    if args.frames < 1:
+        raise ConfigError(f"--frames {args.frames}: expected a number of frames >= 1")
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    overrides = dict(o.split("=", 1) for o in args.overrides if "=" in o)
+    bad = [o for o in args.overrides if "=" not in o]
+    if bad:
+        raise ConfigError(f"--set {bad[0]!r}: expected KEY.PATH=VALUE")
+    import yaml
+
+    bandwidth_curve(args.scenario, fractions, seeds, args.frames, methods, Path(args.out),
+                    overrides={k: yaml.safe_load(v) for k, v in overrides.items()})
+    print(f"bandwidth: {Path(args.out) / 'bandwidth.md'}")
+    return 0
+
+
 def _cmd_view(args: argparse.Namespace) -> int:
     from v2vsim.recording.view import ViewError, find_recording, open_viewer, screenshots
 
@@ -242,6 +266,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="sweep directory (resumable: complete runs there are reused)")
     p.set_defaults(func=_cmd_sweep)
 
+    p = sub.add_parser("bandwidth", help="bandwidth vs accuracy: fixed shares of BEV cells sent, in the env "
+                                         "(v2vsim.env): bandwidth.csv/md/png")
+    _scenario_args(p)
+    p.add_argument("--fractions", default="0,0.05,0.1,0.25,0.5,1",
+                   help="shares of each CAV's feature cells to send (default 0,0.05,0.1,0.25,0.5,1)")
+    p.add_argument("--seeds", required=True, help="A-B or A,B,C (held-out seeds: not the zoo's training seeds)")
+    p.add_argument("--frames", type=int, default=50, help="frames per seed and share (default 50)")
+    p.add_argument("--methods", default="attfuse,fcooper,v2vnet,disconet,cobevt",
+                   help="fusion methods the ego runs (none is always added)")
+    p.add_argument("--out", required=True, help="output directory")
+    p.set_defaults(func=_cmd_bandwidth)
+
     p = sub.add_parser("models", help="list every encoder and fusion method: parameters, stage shapes")
     p.add_argument("--preset", choices=["tiny", "paper"], default="tiny")
     p.add_argument("--json", action="store_true")
@@ -254,8 +290,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--at", default="0", help="with --screenshots: comma-separated frames (default 0)")
     p.set_defaults(func=_cmd_view)
 
-    p = sub.add_parser("bench", help="benchmarks: sensors | models | comm | run")
-    p.add_argument("what", choices=["sensors", "models", "comm", "run"])
+    p = sub.add_parser("bench", help="benchmarks: sensors | models | comm | run | env")
+    p.add_argument("what", choices=["sensors", "models", "comm", "run", "env"])
     p.add_argument("rest", nargs=argparse.REMAINDER, help="options passed to the benchmark (see its --help)")
     p.set_defaults(func=_cmd_bench)
     return parser

@@ -172,6 +172,16 @@ class ChannelConfig:
 
 
 @dataclass(frozen=True)
+class ShareConfig:
+    """What each CAV sends of its BEV features (v2vsim/comm/sparse.py). `all`: the whole map. `topk`: the `fraction`
+    of its feature cells that its own single-agent vehicle confidence ranks highest (Where2comm's spatial
+    confidence, Eq. 2), as a sparse message of indices + values, or the whole map where that is no larger."""
+
+    policy: Literal["all", "topk"] = "all"
+    fraction: float = _f(1.0, "0..1 (share of the BEV feature cells sent)", _prob)
+
+
+@dataclass(frozen=True)
 class CommConfig:
     range_m: float = _f(70.0, "> 0", _pos)
     latency_ms: LatencyConfig = field(default_factory=LatencyConfig)
@@ -186,6 +196,7 @@ class CommConfig:
     # per_link: every (sender, receiver) link has its own data rate; shared: one broadcast channel for every
     # CAV, one transmission at a time, with its busy ratio measured (v2vsim/comm/medium.py)
     medium: Literal["per_link", "shared"] = "per_link"
+    share: ShareConfig = field(default_factory=ShareConfig)
 
 
 @dataclass(frozen=True)
@@ -489,6 +500,11 @@ def _check_cross_fields(sc: Scenario, loader: _Loader) -> None:
     if sc.comm.medium == "shared" and sc.comm.bandwidth_mbps is None and sc.comm.channel.model != "tr37885":
         loader.fail("comm.medium", "'shared' needs a data rate to share: set comm.bandwidth_mbps (e.g. 27) "
                     "or comm.channel.model tr37885 (the MCS rate)")
+    if sc.comm.share.policy == "topk" and (sc.cavs.ego == "all" or (isinstance(sc.cavs.ego, tuple)
+                                                                      and len(sc.cavs.ego) > 1)):
+        loader.fail("comm.share.policy", "'topk' in a run needs one ego (cavs.ego: first or one id): an ego keeps "
+                    "its whole map, so its broadcast cannot serve other egos; v2vsim.env scores every CAV as a "
+                    "receiver")
     if not math.isfinite(sc.duration_s * sc.rate_hz):
         loader.fail("duration_s", f"{sc.duration_s:g} s at rate_hz {sc.rate_hz:g} is more frames than can be counted")
     _check_egos(sc, loader)

@@ -140,6 +140,20 @@ class ApAccumulator:
         return float(np.sum((mrec[steps + 1] - mrec[steps]) * mpre[steps + 1]))
 
 
+def visible_vehicle_masks(p_vehicle: np.ndarray, gt: dict[str, np.ndarray]
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(prediction, truth, ignore) of the visible-vehicle IoU: vehicles no CAV saw are left out of both."""
+    return p_vehicle >= THRESHOLD, gt["visible"], gt["dynamic"] & ~gt["visible"]
+
+
+def vehicle_iou(p_vehicle: np.ndarray, gt: dict[str, np.ndarray]) -> float | None:
+    """One frame's visible-vehicle IoU (None when prediction and truth are both empty)."""
+    acc = IouAccumulator()
+    pred, truth, ignore = visible_vehicle_masks(p_vehicle, gt)
+    acc.add(pred, truth, ignore=ignore)
+    return acc.last_iou
+
+
 @dataclass
 class MethodScore:
     """Everything metrics.json reports for one method."""
@@ -157,7 +171,7 @@ class MethodScore:
         """probs: 'vehicle', 'road', 'lane' probability maps; gt: 'dynamic', 'visible', 'road', 'lane' masks."""
         self.frames += 1
         veh = probs["vehicle"] >= THRESHOLD
-        self.vehicle.add(veh, gt["visible"], ignore=gt["dynamic"] & ~gt["visible"])
+        self.vehicle.add(*visible_vehicle_masks(probs["vehicle"], gt))
         self.vehicle_all.add(veh, gt["dynamic"])
         if "road" in probs:
             self.road.add(probs["road"] >= THRESHOLD, gt["road"])

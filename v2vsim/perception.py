@@ -210,6 +210,15 @@ def late_outputs(model: nn.Module, features: np.ndarray) -> tuple[np.ndarray, np
     return maps.astype(np.float32), boxes.astype(np.float32)
 
 
+@torch.no_grad()
+def vehicle_confidence(model: nn.Module, features: np.ndarray) -> np.ndarray:
+    """The single-agent heads' vehicle probability, max-pooled to the feature grid: [F, F] from features
+    [C, F, F]. What a CAV ranks its cells by under comm.share topk (Where2comm's spatial confidence, Eq. 2)."""
+    out = model.heads(torch.from_numpy(np.ascontiguousarray(features, dtype=np.float32))[None])
+    p = segmentation_probabilities(out["dynamic"])["vehicle"]  # [1, S, S], S = 8F
+    return torch.nn.functional.adaptive_max_pool2d(p[None], features.shape[-1])[0, 0].numpy()
+
+
 @dataclass
 class FusionInputs:
     """What reached the ego for one frame, per sender (ego first), all in the sender's own frame."""

@@ -386,3 +386,18 @@ def test_a_cav_that_leaves_ends_its_agent_and_the_run_goes_on(tmp_path: Path) ->
     assert m["lost_agents"] == {}  # leaving is not dying
     assert m["comm"]["sent"] == 307  # cav0's messages for frames 0..306, none after it left
     assert any("cav0: vehicle left the simulation at frame 307; agent stops" in line for line in run.log)
+
+
+def test_a_run_with_comm_share_topk_sends_sparse_features(tmp_path: Path) -> None:
+    """comm.share topk: the CAVs other than the ego send 10 % of their cells as sparse messages, which the ego
+    accepts (nothing rejected) and fuses; the bytes are the sparse messages' (an eighth of a dense map's)."""
+    out = tmp_path / "run"
+    run = Run("--frames", "3", "--out", str(out), "--methods", "none,cobevt", "--set", "output.rerun=false",
+              "--set", "comm.share.policy=topk", "--set", "comm.share.fraction=0.1", "--set", "comm.range_m=300")
+    assert run.finish() == 0, "".join(run.log)
+    m = _metrics(out)
+    assert m["comm"]["rejected"] == 0 and m["comm"]["delivered"] > 0
+    dense = 64 * 32 * 32 * 2
+    per_message = m["comm"]["bytes_per_message"]
+    assert 102 * (64 * 2 + 2) < per_message < dense / 7  # 102 of 1024 cells, 130 bytes each, plus headers
+    assert m["methods"]["cobevt"]["iou_vehicle"] is not None

@@ -175,3 +175,11 @@ def test_shipped_scenarios_load() -> None:
     for path in sorted((REPO / "scenarios").glob("*.yaml")):
         sc = load_scenario(path)
         assert sc.name
+
+
+def test_share_topk_needs_one_ego_in_a_run() -> None:
+    load_scenario("scenarios/intersection.yaml", ["comm.share.policy=topk", "comm.share.fraction=0.2"])
+    with pytest.raises(ConfigError, match="comm.share.policy"):
+        load_scenario("scenarios/intersection.yaml", ["comm.share.policy=topk", "cavs.ego=all"])
+    with pytest.raises(ConfigError, match="comm.share.fraction"):
+        load_scenario("scenarios/intersection.yaml", ["comm.share.fraction=1.5"])

@@ -11,16 +11,21 @@ Layout (little endian), version 1::
     tag     32 bytes hmac-sha256 over everything before it (only when flags & FLAG_SIGNED)
 
 Array 0 is the message's `payload`; the others are `extras` (late-fusion boxes, say).
+Dtype codes: 1 float16, 2 float32, 3 uint16, 4 uint32. The payload always has its kind's
+dtype; an extra may have any of them (the integer ones carry cell indices).
 
 Kinds and their primary payload:
   * "features": BEV feature map (C, H, W), float16 on the wire.
   * "points":   raw points for early fusion (P, 4) x, y, z, intensity, float32.
   * "outputs":  per-CAV outputs for late fusion: segmentation probabilities (K, H, W) float16,
                 plus extras such as "boxes" (N, 8) float32 (x, y, z, l, w, h, yaw, score).
+  * "sparse":   some cells of a BEV feature map (Where2comm): values (N, C) float16, plus the
+                required extra "cells" (N,) uint16/uint32, the cells' row-major indices into
+                the F x F grid, strictly increasing (v2vsim.comm.sparse builds and expands it).
 
 `channel_compression` is the learned channel-reduction ratio of CoBEVT Table 4 (8x-64x):
-the 1x1-conv encoder/decoder pair lives in models/, so a "features" payload with ratio r
-already carries C/r channels; the header only records r so the receiver picks the matching
+the 1x1-conv encoder/decoder pair lives in models/, so a "features" or "sparse" payload with
+ratio r already carries C/r channels; the header only records r so the receiver picks the matching
 decoder. 1 means off. Lossless `compression` ("zlib") is separate and applies to the payload.
 
 A message that fails any check raises `RejectedMessage(reason)` and nothing else, so a
@@ -30,6 +35,9 @@ What a receiver accepts is a `KindSpec` per kind (`decode(..., spec=...)`): the 
 (exact sizes or `AtMost(n)` bounds) and exactly which extras it must carry. Every check that
 bounds memory (kind, names, shapes, the total declared size, the message length) runs before
 the payload is inflated or copied, so a 1 MB zlib bomb declaring 67 M points costs nothing.
+Under a spec an integer extra is accepted only as the index extra "cells" of a kind whose
+KindSpec sets `cells` (the grid size); its values are checked after decoding ('bad_indices'),
+since a receiver scatters the payload with them.
 """
 
 from __future__ import annotations
@@ -53,17 +61,21 @@ TAG_LEN = 32  # hmac-sha256
 MAX_PAYLOAD_BYTES = 256 << 20  # declared sizes above this are refused before any allocation (no spec given)
 MAX_NDIM = 8
 
-Kind = Literal["features", "points", "outputs"]
+Kind = Literal["features", "points", "outputs", "sparse"]
 Compression = Literal["none", "zlib"]
 
-KIND_CODES: dict[str, int] = {"features": 1, "points": 2, "outputs": 3}
+KIND_CODES: dict[str, int] = {"features": 1, "points": 2, "outputs": 3, "sparse": 4}
 _KIND_NAMES = {v: k for k, v in KIND_CODES.items()}
 COMPRESSION_CODES: dict[str, int] = {"none": 0, "zlib": 1}
 _COMPRESSION_NAMES = {v: k for k, v in COMPRESSION_CODES.items()}
-DTYPE_CODES: dict[str, int] = {"float16": 1, "float32": 2}
+DTYPE_CODES: dict[str, int] = {"float16": 1, "float32": 2, "uint16": 3, "uint32": 4}
 _DTYPE_NAMES = {v: k for k, v in DTYPE_CODES.items()}
-# The wire dtype of each kind's primary payload; extras may be float16 or float32.
-KIND_DTYPES: dict[str, str] = {"features": "float16", "points": "float32", "outputs": "float16"}
+_INDEX_DTYPES = frozenset({"uint16", "uint32"})
+# The wire dtype of each kind's primary payload; extras may have any dtype of DTYPE_CODES.
+KIND_DTYPES: dict[str, str] = {"features": "float16", "points": "float32", "outputs": "float16",
+                               "sparse": "float16"}
+CELLS = "cells"
+"""The name of the index extra checked against KindSpec.cells (the "sparse" kind's cell indices)."""
 
 _FIXED = struct.Struct("<4sBBBBHHIddddd")
 _U8 = struct.Struct("<B")
@@ -92,15 +104,25 @@ class KindSpec:
     `optional`. Any other extra is 'unexpected_extra', a missing one 'missing_extra'.
     channel_compression: the ratio the header must name (the receiver's decoder is built for
     one), None for any.
+    cells: the number of cells of the dense grid that the required extra "cells" indexes, None
+    when the kind carries no indices. The receiver scatters payload rows into those cells, so
+    they must be integers, one per row, in range and strictly increasing ('bad_indices').
     """
 
     payload: ShapeSpec
     extras: Mapping[str, ShapeSpec] = field(default_factory=dict)
     optional: frozenset[str] = frozenset()
     channel_compression: int | None = 1
+    cells: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.cells is not None and (self.cells < 1 or CELLS not in self.extras or CELLS in self.optional):
+            raise ValueError(f"KindSpec(cells={self.cells}) needs cells >= 1 and a required {CELLS!r} extra")
 
     def max_payload_bytes(self, kind: str) -> int | None:
-        """The largest total array size this spec admits (extras at float32), None if unbounded."""
+        """The largest total array size this spec admits, None if unbounded.
+
+        Extras count 4 bytes an element, the widest extra dtype (float32, uint32)."""
         sizes = [_max_elems(self.payload)] + [_max_elems(s) for s in self.extras.values()]
         if any(n is None for n in sizes):
             return None
@@ -128,9 +150,10 @@ def _max_elems(spec: ShapeSpec) -> int | None:
 REASONS = ("truncated", "bad_magic", "bad_version", "bad_header", "unknown_kind", "unknown_dtype",
            "unexpected_kind", "shape_mismatch", "size_mismatch", "decompress_error", "non_finite",
            "unknown_sender", "wrong_run", "unsigned", "bad_signature", "missing_extra", "unexpected_extra",
-           "replayed")
+           "replayed", "bad_indices")
 """Stable rejection counter keys. missing_extra / unexpected_extra: the extras differ from the
-KindSpec; replayed: a signed control message (v2vsim.comm.control) seen before."""
+KindSpec; replayed: a signed control message (v2vsim.comm.control) seen before; bad_indices:
+a "sparse" message's cells are not integers, one per payload row, in range, strictly increasing."""
 
 
 class RejectedMessage(Exception):
@@ -167,8 +190,10 @@ class Message:
 
 
 def _all_finite(a: np.ndarray) -> bool:
-    """np.isfinite(a).all(), but on float16 via the exponent bits (numpy's float16 ufuncs are slow)."""
-    if a.size == 0:
+    """np.isfinite(a).all(), but on float16 via the exponent bits (numpy's float16 ufuncs are slow).
+
+    Integer arrays are finite by construction."""
+    if a.size == 0 or a.dtype.kind != "f":
         return True
     if a.dtype == np.float16:
         return int((a.view(np.uint16) & 0x7FFF).max()) < 0x7C00
@@ -184,6 +209,9 @@ def _utf8(s: str, what: str, limit: int) -> bytes:
 
 def encode(msg: Message, key: bytes | None = None, *, check_finite: bool = True) -> bytes:
     """Serialise `msg` (casting the payload to its kind's wire dtype); sign it when `key` is given.
+
+    Extras keep a wire dtype (float16/32, uint16/32); any other dtype is cast to float32, so
+    indices must already be uint16/uint32 (v2vsim.comm.sparse.index_dtype) to stay integers.
 
     Raises ValueError for a message that the receiver would reject anyway (non-finite values
     after the cast, an unknown kind); `check_finite=False` is for tests that need such bytes.
@@ -203,7 +231,7 @@ def encode(msg: Message, key: bytes | None = None, *, check_finite: bool = True)
         if not name:
             raise ValueError("extra arrays need a non-empty name")
         a = np.asarray(arr)
-        if a.dtype not in (np.float16, np.float32):
+        if a.dtype.name not in DTYPE_CODES:
             with np.errstate(over="ignore"):
                 a = a.astype(np.float32)
         arrays.append((name, a))
@@ -388,6 +416,9 @@ def _decode(data: bytes | bytearray | memoryview, key: bytes | None, known_sende
         dtype = np.dtype(_DTYPE_NAMES[dtype_code]).newbyteorder("<")
         if i == 0 and dtype.name != KIND_DTYPES[kind]:
             raise RejectedMessage("unknown_dtype", f"{kind} must be {KIND_DTYPES[kind]}, got {dtype.name}")
+        if (kspec is not None and i > 0 and dtype.name in _INDEX_DTYPES
+                and not (kspec.cells is not None and name == CELLS)):
+            raise RejectedMessage("unknown_dtype", f"{kind} extra {name!r} must be float, got {dtype.name}")
         if ndim > MAX_NDIM:
             raise RejectedMessage("shape_mismatch", f"ndim {ndim}")
         shape = tuple(r.unpack(struct.Struct(f"<{ndim}I")))
@@ -438,10 +469,28 @@ def _decode(data: bytes | bytearray | memoryview, key: bytes | None, known_sende
         if not _all_finite(a):
             raise RejectedMessage("non_finite", f"array {name or 'payload'}")
         arrays.append((name, a))
+    if kspec is not None and kspec.cells is not None:
+        _check_cells(dict(arrays[1:])[CELLS], arrays[0][1], kspec.cells)
     return Message(kind=kind, run_id=msg_run, sender_id=sender, frame=frame, capture_time=capture_time,
                    sender_pose=(x, y, z, yaw), payload=arrays[0][1],
                    compression=_COMPRESSION_NAMES[comp_code],  # type: ignore[arg-type]
                    channel_compression=ch_comp, extras=dict(arrays[1:]))
+
+
+def _check_cells(cells: np.ndarray, payload: np.ndarray, n_cells: int) -> None:
+    """Indices a receiver can scatter `payload` rows with: one integer per row, < n_cells, strictly
+    increasing (so unique); else RejectedMessage('bad_indices')."""
+    if cells.dtype.name not in _INDEX_DTYPES:
+        raise RejectedMessage("bad_indices", f"{CELLS} of dtype {cells.dtype.name}, not uint16/uint32")
+    rows = payload.shape[0] if payload.ndim else None
+    if cells.shape != (rows,):
+        raise RejectedMessage("bad_indices", f"{CELLS} shape {cells.shape} for payload rows {rows}")
+    if cells.size == 0:
+        return
+    if int(cells.max()) >= n_cells:
+        raise RejectedMessage("bad_indices", f"cell {int(cells.max())} outside a grid of {n_cells}")
+    if not bool((cells[1:] > cells[:-1]).all()):
+        raise RejectedMessage("bad_indices", f"{CELLS} not strictly increasing")
 
 
 def encoded_size_hint(shape: Sequence[int], dtype: str = "float16") -> int:

@@ -9,6 +9,9 @@ inflating message from its header alone (v2vsim.comm.codec "KindSpec"):
             (v2vsim.perception.body_frame_points keeps at most one return per ray)
   outputs   (3, 8F, 8F) float16 maps (the decoder upsamples the grid 8x), and exactly one
             extra, "boxes" (<= MAX_BOXES, 6): x, y, l, w, yaw, score after NMS
+  sparse    (N, C / r) float16, N <= F * F: the values of N cells of the features map (ratio r as
+            for features), and exactly one extra, "cells" (N,) uint16/uint32: their row-major
+            indices into the F x F grid, in range and strictly increasing (v2vsim.comm.sparse)
   points and outputs carry no channel compression (ratio 1); no other extra is accepted.
 
 `EgoDecoder` is the ego's decode path for every kind: agents/ego.py calls it for each received
@@ -21,7 +24,7 @@ from collections.abc import Collection, Iterable, Mapping
 from dataclasses import dataclass
 
 from models.heads import MAX_DETECTIONS
-from v2vsim.comm.codec import AtMost, KindSpec, Message, RejectedMessage, decode
+from v2vsim.comm.codec import CELLS, AtMost, KindSpec, Message, RejectedMessage, decode
 from v2vsim.comm.stats import CommStats
 from v2vsim.config import Scenario
 
@@ -32,6 +35,11 @@ BOX_FIELDS = 6  # x, y, l, w, yaw, score (v2vsim.perception.late_outputs)
 DECODER_UPSAMPLING = 8  # late outputs are 8x the encoder grid
 
 
+KEY_KINDS = {"features": ("features", "sparse")}
+"""The codec kinds each bus key carries where more than its own: a CAV under comm.share topk sends its
+features as a "sparse" message on the same key (v2vsim.comm.share)."""
+
+
 def message_kind(method: str) -> str | None:
     """The message kind a fusion method fuses (None: `none` fuses nothing)."""
     return {"early": "points", "late": "outputs", "none": None}.get(method, "features")
@@ -39,14 +47,15 @@ def message_kind(method: str) -> str | None:
 
 def ego_wire_spec(sc: Scenario, encoder_out_channels: int, encoder_out_cells: int) -> dict[str, KindSpec]:
     """The KindSpec of each message kind the ego of `sc` may receive (see the module docstring)."""
-    c, f = encoder_out_channels, encoder_out_cells
+    c, f, r = encoder_out_channels, encoder_out_cells, sc.comm.channel_compression
     s = DECODER_UPSAMPLING * f
     sweep = sc.sensors.lidar.channels * sc.sensors.lidar.points_per_channel
     return {
-        "features": KindSpec((c // sc.comm.channel_compression, f, f),
-                             channel_compression=sc.comm.channel_compression),
+        "features": KindSpec((c // r, f, f), channel_compression=r),
         "points": KindSpec((AtMost(sweep), 4)),
         "outputs": KindSpec((3, s, s), extras={"boxes": (AtMost(MAX_BOXES), BOX_FIELDS)}),
+        "sparse": KindSpec((AtMost(f * f), c // r), extras={CELLS: (AtMost(f * f),)}, channel_compression=r,
+                           cells=f * f),
     }
 
 
@@ -59,19 +68,21 @@ class EgoDecoder:
     senders: Collection[str]
     key: bytes | None = None
 
+    def _accepted(self, key: str) -> dict[str, KindSpec]:
+        return {k: self.spec[k] for k in KEY_KINDS.get(key, (key,)) if k in self.spec}
+
     def max_bytes(self, kind: str) -> int:
-        """The longest message of `kind` that can be accepted (longer ones need not even be kept)."""
-        ks = self.spec.get(kind)
-        limit = ks.max_message_bytes(kind) if ks is not None else None
-        return limit if limit is not None else 0
+        """The longest message `kind`'s key can carry and be accepted (longer ones need not even be kept)."""
+        limits = [ks.max_message_bytes(k) for k, ks in self._accepted(kind).items()]
+        return 0 if not limits or None in limits else max(limits)  # type: ignore[type-var]
 
     def decode(self, kind: str, data: bytes, sender: str | None = None) -> Message:
         """The message that arrived on `kind`'s key from `sender` (the key's last chunk, if known),
-        or RejectedMessage(reason)."""
-        if kind not in self.spec:
+        or RejectedMessage(reason). The "features" key also carries "sparse" messages (KEY_KINDS)."""
+        accepted = self._accepted(kind)
+        if not accepted:
             raise RejectedMessage("unexpected_kind", f"nothing of kind {kind!r} is expected")
-        msg = decode(data, key=self.key, known_senders=self.senders, run_id=self.run_id,
-                     spec={kind: self.spec[kind]})
+        msg = decode(data, key=self.key, known_senders=self.senders, run_id=self.run_id, spec=accepted)
         if sender is not None and msg.sender_id != sender:
             raise RejectedMessage("unknown_sender", f"{msg.sender_id!r} published under {sender!r}")
         return msg

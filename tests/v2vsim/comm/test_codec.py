@@ -5,6 +5,7 @@ from __future__ import annotations
 import struct
 import tracemalloc
 import zlib
+from collections.abc import Sequence
 
 import numpy as np
 import pytest
@@ -351,3 +352,107 @@ def test_payload_array_must_be_unnamed_under_a_spec() -> None:
     assert data[off] == 0  # the payload's name length
     patched = bytes(data[:off]) + b"\x01x" + bytes(data[off + 1:])
     assert reason(patched, spec=SPEC) == "bad_header"
+
+
+# ---- sparse messages: integer index extras and KindSpec.cells ----------------------------------
+
+SPARSE = {"sparse": KindSpec((AtMost(64), 4), extras={"cells": (AtMost(64),)}, cells=64)}
+
+
+def sparse(cells: Sequence[int] | np.ndarray = (1, 5, 9, 63), dtype: type = np.uint16, rows: int | None = None,
+           **kw) -> Message:
+    """A "sparse" message of (rows, 4) values (rows: one per index unless given) and `cells`."""
+    idx = np.asarray(cells, dtype=dtype)
+    rng = np.random.default_rng(5)
+    n = idx.shape[0] if rows is None else rows
+    return Message(kind="sparse", run_id=RUN, sender_id="cav1", frame=2, capture_time=0.2,
+                   sender_pose=(0, 0, 0, 0), payload=rng.standard_normal((n, 4)).astype(np.float32),
+                   extras={"cells": idx}, **kw)
+
+
+@pytest.mark.parametrize("dtype", [np.uint16, np.uint32])
+def test_sparse_round_trip_keeps_integer_indices(dtype: type) -> None:
+    for comp in ("none", "zlib"):
+        msg = sparse(dtype=dtype, compression=comp)
+        out = decode(encode(msg, b"k"), key=b"k", spec=SPARSE)
+        assert out.kind == "sparse" and out.dtype == "float16" and out.shape == (4, 4)
+        assert out.extras["cells"].dtype == dtype and out.extras["cells"].flags.writeable
+        np.testing.assert_array_equal(out.extras["cells"], [1, 5, 9, 63])
+    empty = decode(encode(sparse(cells=[], rows=0)), spec=SPARSE)
+    assert empty.shape == (0, 4) and empty.extras["cells"].shape == (0,)
+
+
+def test_encode_keeps_uint_extras_and_casts_other_dtypes_to_float32() -> None:
+    big_endian = Message(**{**sparse().__dict__, "extras": {"cells": np.array([1, 2, 300], ">u2")}})
+    got = decode(encode(big_endian), expected={"sparse": (None, 4)})
+    assert got.extras["cells"].dtype == np.uint16 and got.extras["cells"].tolist() == [1, 2, 300]
+    for dtype in (np.int64, np.int32, np.uint8, np.float64, bool):
+        msg = Message(**{**sparse().__dict__, "extras": {"cells": np.array([1, 0, 1], dtype)}})
+        assert decode(encode(msg), expected={"sparse": (None, 4)}).extras["cells"].dtype == np.float32, dtype
+
+
+@pytest.mark.parametrize(("cells", "dtype", "rows", "why"), [
+    ((1, 5, 64), np.uint16, None, "outside a grid"),  # the grid has cells 0..63
+    ((1, 5, 70000), np.uint32, None, "outside a grid"),
+    ((65535,), np.uint16, None, "outside a grid"),
+    ((1, 9, 5), np.uint16, None, "not strictly increasing"),
+    ((1, 5, 5, 9), np.uint16, None, "not strictly increasing"),  # a duplicate
+    ((0, 0), np.uint32, None, "not strictly increasing"),
+    ((9, 5, 1), np.uint16, None, "not strictly increasing"),
+    ((1, 5, 9), np.uint16, 4, "payload rows"),  # one index short
+    ((1, 5, 9), np.uint16, 2, "payload rows"),  # one index too many
+    ((), np.uint16, 1, "payload rows"),
+    ((1, 5, 9), np.float16, None, "dtype float16"),
+    ((1, 5, 9), np.float32, None, "dtype float32"),
+    ((), np.float32, 0, "dtype float32"),  # no indices, but of the wrong kind
+])
+def test_bad_indices(cells: tuple[int, ...], dtype: type, rows: int | None, why: str) -> None:
+    data = encode(sparse(cells, dtype, rows))
+    with pytest.raises(RejectedMessage) as ei:
+        decode(data, spec=SPARSE)
+    assert ei.value.reason == "bad_indices" and why in ei.value.detail, ei.value
+    assert reason(encode(sparse(cells, dtype, rows), b"k"), key=b"k", spec=SPARSE) == "bad_indices"
+    decode(data, expected={"sparse": (None, 4)})  # the lax form checks no indices: it scatters nothing
+
+
+def test_sparse_extras_missing_unexpected_or_misshapen() -> None:
+    assert reason(encode(Message(**{**sparse().__dict__, "extras": {}})), spec=SPARSE) == "missing_extra"
+    renamed = Message(**{**sparse().__dict__, "extras": {"cell": sparse().extras["cells"]}})
+    assert reason(encode(renamed), spec=SPARSE) == "unexpected_extra"
+    two_d = Message(**{**sparse().__dict__, "extras": {"cells": np.array([[1, 5, 9, 63]], np.uint16)}})
+    assert reason(encode(two_d), spec=SPARSE) == "shape_mismatch"
+    assert reason(encode(sparse(cells=np.arange(65), rows=65)), spec=SPARSE) == "shape_mismatch"
+    assert reason(encode(sparse(channel_compression=2)), spec=SPARSE) == "bad_header"
+
+
+def test_integer_extras_only_as_cells() -> None:
+    """Under a spec an integer array is accepted only where it is checked as indices."""
+    int_boxes = Message(**{**outputs().__dict__, "extras": {"boxes": np.zeros((2, 8), np.uint16)}})
+    assert reason(encode(int_boxes), spec=SPEC) == "unknown_dtype"
+    assert decode(encode(int_boxes), expected={"outputs": (3, 16, 16)}).extras["boxes"].dtype == np.uint16
+    no_cells_spec = {"sparse": KindSpec((AtMost(64), 4), extras={"cells": (AtMost(64),)})}
+    assert reason(encode(sparse()), spec=no_cells_spec) == "unknown_dtype"
+    # the sparse payload itself is float16, whatever the extras
+    data = bytearray(encode(sparse()))
+    off = struct.calcsize("<4sBBBBHHIddddd") + 2 + len(RUN) + 2 + len("cav1") + 1
+    assert data[off] == 1
+    data[off] = 3  # uint16: the same size, so only the dtype rule refuses it
+    assert reason(bytes(data), spec=SPARSE) == "unknown_dtype"
+
+
+def test_kindspec_cells_needs_a_required_cells_extra() -> None:
+    for bad in (dict(extras={}), dict(extras={"cells": (AtMost(4),)}, optional=frozenset({"cells"})),
+                dict(extras={"idx": (AtMost(4),)})):
+        with pytest.raises(ValueError):
+            KindSpec((AtMost(4), 2), cells=4, **bad)
+    with pytest.raises(ValueError):
+        KindSpec((AtMost(4), 2), extras={"cells": (AtMost(4),)}, cells=0)
+
+
+def test_max_payload_bytes_bounds_uint32_cells() -> None:
+    spec = SPARSE["sparse"]
+    full = sparse(np.arange(64), np.uint32)
+    body = full.payload.astype(np.float16).nbytes + full.extras["cells"].nbytes
+    assert body == spec.max_payload_bytes("sparse") == 64 * 4 * 2 + 64 * 4
+    assert len(encode(full, b"k")) <= spec.max_message_bytes("sparse")
+    assert decode(encode(full), spec=SPARSE).shape == (64, 4)

@@ -2,7 +2,8 @@
 for every received message): over 10,000 seeded malformed messages of every kind, each one must be
 rejected with a reason from REASONS and counted, nothing else may escape, and memory stays bounded
 (issue 8: an outputs message without boxes killed the ego; a 1 MB zlib bomb declaring 67 M points
-grew it by 2.3 GiB).
+grew it by 2.3 GiB). Sparse messages also get their cell indices corrupted (`bad_cells`): the ego
+scatters the payload with them, so a bad index must be 'bad_indices', never an IndexError.
 
 The scenario is the shipped intersection with a small LiDAR (4 x 64 rays) and small encoder dims,
 so that every message is a few KiB and the whole run takes a few seconds on a laptop core.
@@ -26,6 +27,7 @@ import numpy as np
 import pytest
 
 from v2vsim.comm.codec import (
+    CELLS,
     FLAG_SIGNED,
     KIND_CODES,
     REASONS,
@@ -35,8 +37,9 @@ from v2vsim.comm.codec import (
     RejectedMessage,
     encode,
 )
+from v2vsim.comm.sparse import index_dtype
 from v2vsim.comm.stats import CommStats
-from v2vsim.comm.wire_spec import MAX_BOXES, EgoDecoder, ego_wire_spec
+from v2vsim.comm.wire_spec import KEY_KINDS, MAX_BOXES, EgoDecoder, ego_wire_spec
 from v2vsim.config import Scenario, load_scenario
 
 REPO = Path(__file__).resolve().parents[3]
@@ -44,6 +47,7 @@ RUN = "fuzz-run"
 SENDERS = frozenset({"cav0", "cav1", "cav2"})
 KEY = b"fuzz key 0123456789"
 C, F, RATIO = 16, 8, 4  # encoder channels and cells, comm.channel_compression: features (4, 8, 8)
+KINDS = list(KIND_CODES)
 FIXED = struct.Struct("<4sBBBBHHIddddd")
 FRAME_AND_POSE = range(12, FIXED.size)  # frame, capture time, pose: any value of these is legitimate
 MIN_CASES = 10_000
@@ -66,7 +70,8 @@ class Case:
 
 def _msg(kind: str, rng: np.random.Generator, *, sender: str = "cav1", compression: str = "none",
          run_id: str = RUN, zeros: bool = False, n: int | None = None, **kw) -> Message:
-    """A valid message of `kind` as the scenario's CAVs send it (random or all-zero values)."""
+    """A valid message of `kind` as the scenario's CAVs send it (random or all-zero values);
+    `n`: the points, boxes or sparse cells it carries."""
     def fill(shape: tuple[int, ...]) -> np.ndarray:
         return np.zeros(shape, np.float32) if zeros else rng.random(shape, dtype=np.float32)
 
@@ -77,6 +82,11 @@ def _msg(kind: str, rng: np.random.Generator, *, sender: str = "cav1", compressi
                        **{**stamp, **kw})
     if kind == "points":
         return Message(kind="points", payload=fill((20 if n is None else n, 4)), **{**stamp, **kw})
+    if kind == "sparse":
+        k = 20 if n is None else n
+        cells = np.sort(rng.choice(F * F, size=k, replace=False)).astype(index_dtype(F * F))
+        return Message(kind="sparse", payload=fill((k, C // RATIO)), extras={CELLS: cells},
+                       channel_compression=RATIO, **{**stamp, **kw})
     boxes = fill((3 if n is None else n, 6))
     return Message(kind="outputs", payload=fill((3, 8 * F, 8 * F)), extras={"boxes": boxes}, **{**stamp, **kw})
 
@@ -125,19 +135,19 @@ def _bomb() -> bytes:
 
 
 def random_bytes(rng: np.random.Generator) -> Iterator[Case]:
-    kinds = list(KIND_CODES)
+    kinds = KINDS
     for i in range(1500):
-        kind = kinds[i % 3]
+        kind = kinds[i % len(kinds)]
         yield Case("random", kind, "cav1", rng.bytes(int(rng.integers(0, 400))), bool(i % 2))
     for i in range(600):  # past the magic and version check, random thereafter
-        kind = kinds[i % 3]
+        kind = kinds[i % len(kinds)]
         data = b"V2VS\x01" + bytes([KIND_CODES[kind]]) + rng.bytes(int(rng.integers(0, 300)))
         yield Case("random after the magic", kind, "cav1", data, bool(i % 2))
 
 
 def truncations(rng: np.random.Generator) -> Iterator[Case]:
     bases = [_msg("features", rng), _msg("features", rng, compression="zlib"), _msg("points", rng),
-             _msg("outputs", rng, compression="zlib", zeros=True)]
+             _msg("outputs", rng, compression="zlib", zeros=True), _msg("sparse", rng, n=6)]
     for msg in bases:
         for keyed in (False, True):
             data = encode(msg, KEY if keyed else None)
@@ -167,10 +177,10 @@ def bit_flips(rng: np.random.Generator) -> Iterator[Case]:
 def _array_to_corrupt(i: int, rng: np.random.Generator) -> tuple[str, bool, bytearray, dict[str, int], int]:
     """Case i's kind (cycling), whether it is keyed (alternating), a valid message as editable bytes
     (unsigned: `_out` signs it again after the edit), its header layout, and which array to corrupt."""
-    kind = list(KIND_CODES)[i % 3]
+    kind = KINDS[i % len(KINDS)]
     keyed = bool(i % 2)
     data = bytearray(_unsigned(encode(_msg(kind, rng), KEY if keyed else None), keyed))
-    return kind, keyed, data, _layout(bytes(data)), int(rng.integers(0, 2 if kind == "outputs" else 1))
+    return kind, keyed, data, _layout(bytes(data)), int(rng.integers(0, 2 if kind in ("outputs", "sparse") else 1))
 
 
 def huge_shapes(rng: np.random.Generator) -> Iterator[Case]:
@@ -214,12 +224,12 @@ def zlib_bombs(rng: np.random.Generator) -> Iterator[Case]:
 
 def non_finite(rng: np.random.Generator) -> Iterator[Case]:
     for i in range(900):
-        kind = list(KIND_CODES)[i % 3]
+        kind = KINDS[i % len(KINDS)]
         keyed = bool(i % 2)
         msg = _msg(kind, rng, compression="zlib" if i % 5 == 0 else "none")
         value = [np.nan, np.inf, -np.inf, 1e6 if kind != "points" else np.nan][i % 4]  # 1e6: inf in float16
         where = int(rng.integers(0, 3))
-        if where == 0 or (where == 1 and kind != "outputs"):
+        if where == 0 or (where == 1 and kind != "outputs"):  # sparse cells are integers: always finite
             payload = msg.payload.copy()
             payload.flat[int(rng.integers(0, payload.size))] = value
             msg = Message(**{**msg.__dict__, "payload": payload})
@@ -240,7 +250,8 @@ def wrong_dtypes(rng: np.random.Generator) -> Iterator[Case]:
     for i in range(450):
         kind, keyed, plain, lay, arr = _array_to_corrupt(i, rng)
         right = plain[lay[f"dtype{arr}"]]
-        choices = [c for c in range(256) if c != right and not (arr == 1 and c in (1, 2))]
+        # boxes may be float16 or float32; any other change (integer boxes, float cells) is refused
+        choices = [c for c in range(256) if c != right and not (kind == "outputs" and arr == 1 and c in (1, 2))]
         plain[lay[f"dtype{arr}"]] = int(rng.choice(choices[:8] if i % 3 else choices))
         yield Case(f"{kind} array {arr} dtype", kind, "cav1", _out(bytes(plain), keyed), keyed)
 
@@ -287,6 +298,15 @@ def extras(rng: np.random.Generator) -> Iterator[Case]:
         for kind in ("features", "points"):
             msg = _msg(kind, rng)
             cases[f"{kind} with boxes"] = Message(**{**msg.__dict__, "extras": {"boxes": boxes}})
+        sparse = _msg("sparse", rng, compression="zlib" if i % 4 == 0 else "none")
+        cells = sparse.extras[CELLS]
+        cases.update({
+            "sparse without cells": Message(**{**sparse.__dict__, "extras": {}}),
+            "sparse with cells and boxes": Message(**{**sparse.__dict__, "extras": {CELLS: cells, "boxes": boxes}}),
+            "sparse with cells under another name": Message(**{**sparse.__dict__, "extras": {name: cells}}),
+            "outputs with cells": Message(**{**outputs.__dict__, "extras": {"boxes": boxes, CELLS: cells}}),
+            "features with cells": Message(**{**_msg("features", rng).__dict__, "extras": {CELLS: cells}}),
+        })
         for what, msg in cases.items():
             yield Case(what, msg.kind, "cav1", encode(msg, key), keyed)
         # the same extra twice (encode cannot: patch a 5-letter name into "boxes")
@@ -298,14 +318,16 @@ def extras(rng: np.random.Generator) -> Iterator[Case]:
 
 
 def misrouted(rng: np.random.Generator) -> Iterator[Case]:
-    kinds = list(KIND_CODES)
+    kinds = KINDS
     for i in range(300):
         keyed = bool(i % 2)
         key = KEY if keyed else None
-        kind = kinds[i % 3]
+        kind = kinds[i % len(kinds)]
+        other = kinds[(i + 1 + (i // len(kinds)) % (len(kinds) - 1)) % len(kinds)]  # every other kind in turn
         msg = _msg(kind, rng)
         data = encode(msg, key)
-        yield Case(f"{kind} on the {kinds[(i + 1) % 3]} key", kinds[(i + 1) % 3], "cav1", data, keyed)
+        if kind not in KEY_KINDS.get(other, (other,)):  # sparse rides the features key by design
+            yield Case(f"{kind} on the {other} key", other, "cav1", data, keyed)
         yield Case(f"{kind} on the vis key", "vis", "cav1", data, keyed)
         yield Case(f"{kind} from cav1 under cav2's key", kind, "cav2", data, keyed)
         yield Case(f"{kind} of another run", kind, "cav1", encode(_msg(kind, rng, run_id="old-run"), key), keyed)
@@ -323,11 +345,59 @@ def misrouted(rng: np.random.Generator) -> Iterator[Case]:
         yield Case("points of 3 or 5 fields", "points", "cav1", encode(other, key), keyed)
         maps = Message(**{**_msg("outputs", rng).__dict__, "payload": np.zeros((3, 8 * F, 8 * F + 1))})
         yield Case("outputs of another grid", "outputs", "cav1", encode(maps, key), keyed)
+        sparse = Message(**{**_msg("sparse", rng).__dict__, "channel_compression": [1, 2, 8, 64][i % 4]})
+        yield Case("sparse of another channel compression", "sparse", "cav1", encode(sparse, key), keyed)
+        wide = _msg("sparse", rng)
+        wide = Message(**{**wide.__dict__, "payload": np.zeros((wide.shape[0], C), np.float32)})
+        yield Case("uncompressed sparse", "sparse", "cav1", encode(wide, key), keyed)
+        every = _msg("sparse", rng, n=F * F)
+        more = Message(**{**every.__dict__, "payload": np.zeros((F * F + 1 + i, C // RATIO), np.float32),
+                          "extras": {CELLS: np.arange(F * F + 1 + i, dtype=np.uint16)}})
+        yield Case("sparse of more cells than the grid", "sparse", "cav1", encode(more, key), keyed)
+
+
+def bad_cells(rng: np.random.Generator) -> Iterator[Case]:
+    """Sparse messages whose indices the ego could not scatter with: each one is 'bad_indices'
+    (or, for a shape the spec already bounds, 'shape_mismatch')."""
+    dtype = index_dtype(F * F)
+    for i in range(400):
+        keyed = bool(i % 2)
+        key = KEY if keyed else None
+        msg = _msg("sparse", rng, n=int(rng.integers(2, F * F)), compression="zlib" if i % 3 == 0 else "none")
+        cells = msg.extras[CELLS].astype(np.int64)
+        j = int(rng.integers(0, cells.size))
+        what = ["out of range", "last out of range", "swapped", "duplicate", "reversed", "one short", "one more",
+                "float16", "float32", "2-D", "uint32 out of range", "max"][i % 12]
+        if what == "out of range":
+            cells[j] = int(rng.integers(F * F, 1 << 16))
+        elif what == "last out of range":
+            cells[-1] = F * F
+        elif what == "swapped":
+            cells[[j, (j + 1) % cells.size]] = cells[[(j + 1) % cells.size, j]]
+        elif what == "duplicate":
+            cells[j] = cells[j - 1] if j else cells[1]
+        elif what == "reversed":
+            cells = cells[::-1]
+        elif what == "one short":
+            cells = np.delete(cells, j)
+        elif what == "one more":
+            spare = np.setdiff1d(np.arange(F * F), cells)
+            cells = np.sort(np.append(cells, spare[int(rng.integers(0, spare.size))]))
+        elif what == "max":
+            cells[j] = np.iinfo(dtype).max
+        out_dtype = {"float16": np.float16, "float32": np.float32, "2-D": dtype,
+                     "uint32 out of range": np.uint32}.get(what, dtype)
+        if what == "2-D":
+            cells = cells.reshape(1, -1)
+        if what == "uint32 out of range":
+            cells[j] = int(rng.integers(1 << 16, 1 << 32))
+        bad = Message(**{**msg.__dict__, "extras": {CELLS: cells.astype(out_dtype)}})
+        yield Case(f"sparse cells {what}", "sparse", "cav1", encode(bad, key), keyed)
 
 
 GENERATORS: list[Callable[[np.random.Generator], Iterator[Case]]] = [
     random_bytes, truncations, bit_flips, huge_shapes, zlib_bombs, non_finite, wrong_dtypes, tampered_signatures,
-    extras, misrouted]
+    extras, misrouted, bad_cells]
 
 
 def test_the_wire_spec_is_the_scenarios() -> None:
@@ -337,6 +407,11 @@ def test_the_wire_spec_is_the_scenarios() -> None:
     assert spec["points"].payload == (AtMost(32 * 1024), 4)
     assert spec["outputs"].payload == (3, 256, 256) and dict(spec["outputs"].extras) == {"boxes": (AtMost(100), 6)}
     assert spec["outputs"].optional == frozenset()
+    assert spec["sparse"].payload == (AtMost(1024), 64) and dict(spec["sparse"].extras) == {CELLS: (AtMost(1024),)}
+    assert spec["sparse"].cells == 1024 and spec["sparse"].channel_compression == 1
+    assert spec["sparse"].max_payload_bytes("sparse") == 1024 * 64 * 2 + 1024 * 4
+    small = ego_wire_spec(small_scenario(), C, F)["sparse"]
+    assert small.payload == (AtMost(F * F), C // RATIO) and small.channel_compression == RATIO
     # every bound is finite: nothing the ego accepts can be larger than this
     assert all(s.max_payload_bytes(k) is not None for k, s in spec.items())
     assert spec["points"].max_payload_bytes("points") == 32 * 1024 * 4 * 4
@@ -354,10 +429,16 @@ def test_valid_messages_pass_the_ego_decoder() -> None:
         stats = CommStats()
         for kind in KIND_CODES:
             for comp in ("none", "zlib"):
-                for n in (0, 1, 256 if kind == "points" else MAX_BOXES):
+                for n in (0, 1, {"points": 256, "sparse": F * F}.get(kind, MAX_BOXES)):
                     msg = _msg(kind, rng, compression=comp, n=n)
                     got = dec.receive(kind, encode(msg, key), "cav1", [stats])
                     assert got is not None and got.kind == kind, (kind, comp, n)
+            # the cells may also come as uint32, whatever the grid
+            msg = _msg("sparse", rng, compression=comp)
+            wide = Message(**{**msg.__dict__, "extras": {CELLS: msg.extras[CELLS].astype(np.uint32)}})
+            got = dec.receive("sparse", encode(wide, key), "cav1", [stats])
+            assert got is not None and got.extras[CELLS].dtype == np.uint32
+            np.testing.assert_array_equal(got.extras[CELLS], msg.extras[CELLS])
         assert stats.rejected == 0
 
 
@@ -402,11 +483,25 @@ def test_fuzz_every_malformed_message_is_rejected_and_counted() -> None:
     assert set(stats.rejected_reasons) <= set(REASONS)
     for must in ("truncated", "bad_magic", "bad_signature", "unsigned", "shape_mismatch", "size_mismatch",
                  "non_finite", "unknown_dtype", "missing_extra", "unexpected_extra", "unexpected_kind",
-                 "unknown_sender", "wrong_run", "decompress_error", "bad_header"):
+                 "unknown_sender", "wrong_run", "decompress_error", "bad_header", "bad_indices"):
         assert stats.rejected_reasons[must] > 0, (must, dict(stats.rejected_reasons))
     assert peak < 64 << 20, f"tracemalloc peak {peak / 2**20:.1f} MiB"
     print(f"fuzz: {n} messages in {elapsed:.2f} s, tracemalloc peak {peak / 2**20:.2f} MiB, "
           f"{dict(stats.rejected_reasons)}")
+
+
+def test_bad_cells_are_bad_indices() -> None:
+    """The fuzz above only asks for some reason; each corrupted index set must be refused as such."""
+    spec = ego_wire_spec(small_scenario(), C, F)
+    decoders = {False: EgoDecoder(spec, RUN, SENDERS, None), True: EgoDecoder(spec, RUN, SENDERS, KEY)}
+    seen = set()
+    for case in bad_cells(np.random.default_rng(3)):
+        with pytest.raises(RejectedMessage) as ei:
+            decoders[case.keyed].decode(case.kind, case.data, case.sender)
+        want = "shape_mismatch" if case.what.endswith("2-D") else "bad_indices"
+        assert ei.value.reason == want, (case.what, ei.value)
+        seen.add(case.what)
+    assert len(seen) == 12
 
 
 def test_the_issues_zlib_bomb_allocates_nothing() -> None:
@@ -429,3 +524,29 @@ def test_the_issues_zlib_bomb_allocates_nothing() -> None:
             tracemalloc.stop()
         assert stats.rejected_reasons.keys() <= {"shape_mismatch", "size_mismatch"} and stats.rejected == 1
         assert peak < 256 << 10, peak  # not even a copy of the message
+
+
+def test_the_features_key_takes_sparse_messages_and_bounds_both() -> None:
+    """Under comm.share topk a CAV's features come as "sparse" on the features key: accepted there, and the
+    key's size limit is the larger of the two kinds' (a dense map is the larger)."""
+    from v2vsim.comm.share import dense_payload, feature_message
+    from v2vsim.config import load_scenario
+
+    sc = load_scenario("scenarios/intersection.yaml")
+    dec = EgoDecoder(ego_wire_spec(sc, 64, 32), "run", frozenset({"cav0", "cav1"}))
+    rng = np.random.default_rng(0)
+    payload = rng.standard_normal((64, 32, 32)).astype(np.float16)
+    confidence = rng.uniform(size=(32, 32))
+    stamp = {"run_id": "run", "sender_id": "cav1", "frame": 3, "capture_time": 0.3, "sender_pose": (1, 2, 0, 0.5)}
+    sparse = feature_message(payload, confidence, 0.25, stamp)
+    dense = feature_message(payload, confidence, 1.0, stamp)
+    assert (sparse.kind, dense.kind) == ("sparse", "features")
+    got = dec.decode("features", encode(sparse), "cav1")
+    restored = dense_payload(got, (64, 32, 32))
+    sent = np.zeros(32 * 32, bool)
+    sent[sparse.extras["cells"]] = True
+    assert sent.sum() == 256 and np.array_equal(restored.reshape(64, -1)[:, sent], payload.reshape(64, -1)[:, sent])
+    assert not restored.reshape(64, -1)[:, ~sent].any()
+    assert dec.max_bytes("features") >= len(encode(dense)) > len(encode(sparse))
+    with pytest.raises(RejectedMessage, match="unexpected_kind"):
+        dec.decode("points", encode(sparse), "cav1")
