@@ -450,3 +450,20 @@ def test_retrained_weights_rerun_every_run(tmp_path: Path, monkeypatch: pytest.M
     monkeypatch.setattr(runs_mod, "weights_fingerprint", lambda *a: "another zoo")
     again = FakeStarter()
     assert sweep(_args(out), start=again, stream=io.StringIO()) == 0 and len(again.started) == 6
+
+
+def test_a_key_added_since_a_run_counts_as_its_default() -> None:
+    """A finished run recorded before comm.share (or any key) existed is the same run while the key is at its
+    default; a non-default value, a changed value or a key that went away is another run."""
+    from v2vsim.study.runs import effective_config, same_config
+
+    new = effective_config(Path(SCENARIO), [])
+    old = json.loads(json.dumps(new))
+    del old["comm"]["share"], old["comm"]["medium"]
+    assert same_config(old, new)
+    assert not same_config(old, effective_config(Path(SCENARIO), ["comm.share.fraction=0.5"]))
+    assert not same_config(old, effective_config(Path(SCENARIO), ["comm.medium=shared"]))
+    assert not same_config(old, effective_config(Path(SCENARIO), ["comm.drop.p=0.1"]))
+    gone = json.loads(json.dumps(new))
+    gone["comm"]["retired_key"] = 1
+    assert not same_config(gone, new)

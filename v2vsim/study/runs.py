@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol, TextIO
 
-from v2vsim.config import load_scenario
+from v2vsim.config import Scenario, load_scenario
 from v2vsim.runner import die_with_parent
 from v2vsim.study.grid import Axis, Point
 
@@ -77,6 +77,41 @@ def effective_config(scenario: Path, overrides: Sequence[str]) -> dict:
     return json.loads(json.dumps(doc, default=str))
 
 
+_MISSING = object()
+
+
+def _default_at(path: Sequence[str]) -> object:
+    """The schema default of a scenario key path as effective_config writes it; _MISSING if there is none."""
+    cls: object = Scenario
+    for name in path:
+        if not dataclasses.is_dataclass(cls):
+            return _MISSING
+        f = next((f for f in dataclasses.fields(cls) if f.name == name), None)
+        if f is None:
+            return _MISSING
+        if f.default is not dataclasses.MISSING:
+            value = f.default
+        elif f.default_factory is not dataclasses.MISSING:
+            value = f.default_factory()
+        else:
+            return _MISSING
+        cls = value
+    value = dataclasses.asdict(cls) if dataclasses.is_dataclass(cls) else cls  # type: ignore[arg-type]
+    return json.loads(json.dumps(value, default=str))
+
+
+def same_config(old: object, new: object, path: tuple[str, ...] = ()) -> bool:
+    """Whether a run recorded with config `old` is the run `new` asks for. A key `old` lacks counts as equal
+    when `new` has its schema default there: keys are added with defaults that keep earlier results, so a
+    scenario key added since (comm.share, say) does not make every finished run of a sweep run again."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        if set(old) - set(new):
+            return False
+        return all(same_config(old[k], v, (*path, k)) if k in old else v == _default_at((*path, k))
+                   for k, v in new.items())
+    return old == new
+
+
 def weights_fingerprint(scenario: Path, overrides: Sequence[str]) -> str | None:
     """What identifies the weights a run loads: the zoo manifest's sha256 (it holds every checkpoint's) under
     `weights: auto`, the checkpoint's own for a path, None for untrained; so that a retrained zoo reruns."""
@@ -123,8 +158,9 @@ def is_done(spec: RunSpec) -> bool:
         return True
     except (OSError, ValueError):
         return False
-    same = ("config", "frames")  # not the spelling of the overrides
-    if not isinstance(asked, dict) or any(asked.get(k) != spec.request[k] for k in same):
+    if not isinstance(asked, dict) or asked.get("frames") != spec.request["frames"]:  # not the overrides' spelling
+        return False
+    if not same_config(asked.get("config"), spec.request["config"]):
         return False
     # other weights (a retrained zoo) are another run; requests written before weights were recorded count
     return "weights" not in asked or asked["weights"] == spec.request.get("weights")
