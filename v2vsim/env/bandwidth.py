@@ -135,6 +135,8 @@ def _plot(path: Path, summary: Sequence[dict], methods: Sequence[str]) -> None:
     if none:
         ax.axhline(float(np.mean(none)), color="k", ls="--", lw=1, label="none (no fusion)")
     ax.set_xscale("symlog", linthresh=1.0)
+    top = max((s["bytes_per_frame"] for s in summary), default=1024.0) / 1024
+    ax.set_xlim(-0.3, max(2.0, top * 1.6))  # 0 bytes (nothing sent) at the left edge, no negative decades
     ax.set_xlabel("KiB per frame sent to the ego (encoded messages; labels: share of cells)")
     ax.set_ylabel("vehicle IoU (visible)")
     ax.set_title("Bandwidth vs accuracy (95% intervals over seeds)")
