@@ -47,6 +47,8 @@ def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: Comm
     comm_doc["by_kind"] = {k: s.to_json() for k, s in comm_by_kind.items() if k != "features"}
     return {
         "scenario": sc.name,
+        "seed": sc.seed,
+        "overrides": list(sc.overrides),  # --set as given: the run again is `v2vsim run SOURCE --set ...`
         "frames": summary.frames,
         "cavs": sc.cavs.count,
         "modality": sc.perception.modality,
@@ -95,6 +97,9 @@ def report_md(doc: dict, summary: RunSummary) -> str:
     lines.append(f"Status: **{doc['status']}**, {doc['frames']} frames at {sc.rate_hz:g} Hz, {sc.cavs.count} CAVs, "
                  f"ego {summary.ego}, {sc.perception.modality} / {sc.perception.encoder} ({sc.perception.preset}), "
                  f"clock {sc.transport.clock}, real-time factor {doc['real_time_factor']}.")
+    lines.append("")
+    lines.append(f"Scenario `{sc.source}`, seed {sc.seed}" + (
+        ", overrides: " + " ".join(f"`--set {o}`" for o in sc.overrides) if sc.overrides else ", no overrides") + ".")
     if summary.untrained:
         lines += ["", "**Weights are untrained** (no checkpoint for this encoder/preset; every process uses the same "
                   "seeded random initialisation). The scores below measure the harness, not the methods: do not "

@@ -101,6 +101,7 @@ def test_run_writes_report_metrics_recording_and_plots(tmp_path: Path) -> None:
     m = _metrics(out)
     assert m["scenario"] == "intersection" and m["frames"] == 4 and m["cavs"] == 3 and m["modality"] == "lidar"
     assert m["real_time_factor"] > 0
+    assert m["seed"] == 0 and "cavs.count=3" in m["overrides"] and "comm.range_m=300" in m["overrides"]
     comm = m["comm"]
     for k in ("sent", "delivered", "dropped", "stale", "rejected", "bytes_per_message", "latency_ms"):
         assert k in comm
