@@ -10,8 +10,8 @@ confidence). Its reward is what its message added to the other CAVs' vehicle IoU
 
   random     a share drawn uniformly from [0, 1] each frame
   threshold  the share of its cells whose vehicle confidence is above 0.5 (Where2comm's selection rule)
-  tuned      share = clip(scale * (share of cells above tau), 0, 1), and nothing when no other CAV is
-             within `reach` metres; (tau, scale, reach) tuned by CEM on the training seeds
+  tuned      share = clip(base + scale * (share of cells above tau), 0, 1), and nothing when no other CAV is
+             within `reach` metres; (base, tau, scale, reach) tuned by CEM on the training seeds
 
 The tuned policy is scored on held-out seeds it never saw, beside the two fixed ones.
 """
@@ -39,13 +39,13 @@ def threshold_policy(obs: dict, rng: np.random.Generator, tau: float = 0.5) -> f
 
 
 def tuned_policy(theta: np.ndarray) -> Policy:
-    tau, scale, reach = float(theta[0]), float(theta[1]), float(theta[2])
+    base, tau, scale, reach = (float(v) for v in theta)
 
     def act(obs: dict, rng: np.random.Generator) -> float:
         d = obs["links"][:, 0]
         if not np.any((d >= 0) & (d <= reach)):
             return 0.0  # nobody near enough to gain from it: the bytes would be pure cost
-        return float(np.clip(scale * np.mean(obs["confidence"] > tau), 0.0, 1.0))
+        return float(np.clip(base + scale * np.mean(obs["confidence"] > tau), 0.0, 1.0))
 
     return act
 
@@ -71,21 +71,25 @@ def evaluate(env, policy: Policy, seeds: list[int], steps: int) -> dict:
     return {k: float(np.mean([r[k] for r in runs])) for k in runs[0]}
 
 
+def _describe(theta: np.ndarray) -> str:
+    return f"base {theta[0]:.3f}, tau {theta[1]:.2f}, scale {theta[2]:.2f}, reach {theta[3]:.0f} m"
+
+
 def cem(env, seeds: list[int], steps: int, iters: int, population: int, log: Callable[[str], None]) -> np.ndarray:
-    """Cross-entropy method over (tau, scale, reach): sample, keep the best third, refit a diagonal Gaussian."""
+    """Cross-entropy method over (base, tau, scale, reach): sample, keep the best third, refit a diagonal Gaussian."""
     rng = np.random.default_rng(0)
-    mean, std = np.array([0.5, 1.0, 70.0]), np.array([0.25, 0.5, 25.0])
-    lo, hi = np.array([0.0, 0.0, 0.0]), np.array([1.0, 4.0, 150.0])
+    mean, std = np.array([0.1, 0.5, 1.0, 70.0]), np.array([0.1, 0.25, 0.5, 25.0])
+    lo, hi = np.array([0.0, 0.0, 0.0, 0.0]), np.array([1.0, 1.0, 4.0, 150.0])
     best, best_r = mean.copy(), -np.inf
     for it in range(iters):
-        cands = np.clip(rng.normal(mean, std, size=(population, 3)), lo, hi)
+        cands = np.clip(rng.normal(mean, std, size=(population, len(mean))), lo, hi)
         scores = np.array([evaluate(env, tuned_policy(c), seeds, steps)["reward"] for c in cands])
         elite = cands[np.argsort(scores)[-max(2, population // 3):]]
         mean, std = elite.mean(axis=0), elite.std(axis=0) + 1e-3
         if scores.max() > best_r:
             best_r, best = float(scores.max()), cands[int(np.argmax(scores))]
-        log(f"CEM iteration {it + 1}/{iters}: best reward {scores.max():+.4f} (tau {best[0]:.2f}, "
-            f"scale {best[1]:.2f}, reach {best[2]:.0f} m), mean {scores.mean():+.4f}")
+        log(f"CEM iteration {it + 1}/{iters}: best reward {scores.max():+.4f} ({_describe(best)}), "
+            f"mean {scores.mean():+.4f}")
     return best
 
 
@@ -95,8 +99,8 @@ def main() -> None:
     p.add_argument("--train-seeds", default="30,31")
     p.add_argument("--eval-seeds", default="40,41")
     p.add_argument("--steps", type=int, default=15, help="steps per episode")
-    p.add_argument("--iters", type=int, default=3)
-    p.add_argument("--population", type=int, default=6)
+    p.add_argument("--iters", type=int, default=4)
+    p.add_argument("--population", type=int, default=8)
     p.add_argument("--out", default=None, help="write the results as JSON here")
     a = p.parse_args()
     train = [int(s) for s in a.train_seeds.split(",")]
@@ -117,7 +121,7 @@ def main() -> None:
     print(f"{'policy':10s} {'reward':>9s} {'IoU gain':>9s} {'bytes':>9s}")
     for name, r in results.items():
         print(f"{name:10s} {r['reward']:+9.4f} {r['iou_gain']:+9.4f} {r['bytes']:9.0f}")
-    print(f"tuned: tau {theta[0]:.2f}, scale {theta[1]:.2f}, reach {theta[2]:.0f} m")
+    print(f"tuned: {_describe(theta)}")
     if a.out:
         with open(a.out, "w") as f:
             json.dump({"theta": theta.tolist(), "held_out": held_out, "train": train, "results": results}, f, indent=1)
