@@ -185,12 +185,12 @@ class CooperativePerceptionEnv(ParallelEnv):
             self._backend.close()
         self._backend = make_backend(sc)
         world = self._backend.reset()
-        if self._assets is None or seed is not None:
+        if self._assets is None:  # the map is the scenario's; only the seed changes between resets
             self._assets = build_map_assets(self._backend.static)
         self._world = world
         self.agents = [a for a in self.possible_agents if world.actor(a) is not None]
         self._inboxes = {a: Inbox(sc.comm, sc.seed, a, "features", CommStats()) for a in self.possible_agents}
-        self._decoders = EgoDecoder(ego_wire_spec(sc, self.channels, self.cells), f"env-{sc.seed}",
+        self._decoder = EgoDecoder(ego_wire_spec(sc, self.channels, self.cells), f"env-{sc.seed}",
                                     frozenset(self.possible_agents))
         self._links = {}
         self._latency = {}
@@ -217,14 +217,15 @@ class CooperativePerceptionEnv(ParallelEnv):
             s = self._sensed[a]
             if round(frac * self.cells * self.cells) == 0:
                 continue  # nothing to send: no message, no bytes
-            stamp = {"run_id": self._decoders.run_id, "sender_id": a, "frame": world.frame,
+            stamp = {"run_id": self._decoder.run_id, "sender_id": a, "frame": world.frame,
                      "capture_time": world.time, "sender_pose": world.actor(a).pose.as_tuple(),
                      "compression": sc.comm.compression}
             msg = feature_message(s.payload, s.confidence, frac, stamp, sc.comm.channel_compression)
             data = encode(msg)
             sent[a] = (data, msg)
             nbytes[a] = len(data)
-            self.bytes_sent[a].append(len(data))
+        for a in self.agents:
+            self.bytes_sent[a].append(nbytes[a])
         visible = frozenset().union(*(s.seen for s in self._sensed.values()))
         receivers = self._receivers()
         gain = dict.fromkeys(self.agents, 0.0)
@@ -312,14 +313,14 @@ class CooperativePerceptionEnv(ParallelEnv):
         me = world.actor(j).pose
         own = self._sensed[j].payload.astype(np.float16)  # its whole map, as the wire would carry it
         airtime = len(sent[j][0]) if j in sent else 0  # its broadcast's size (comm.medium shared counts it)
-        inbox.offer(Message(kind="features", run_id=self._decoders.run_id, sender_id=j, frame=world.frame,
+        inbox.offer(Message(kind="features", run_id=self._decoder.run_id, sender_id=j, frame=world.frame,
                             capture_time=world.time, sender_pose=me.as_tuple(), payload=own,
                             channel_compression=self._episode_sc.comm.channel_compression),
                     airtime, world.time, 0.0)
         for i, (data, _) in sent.items():
             if i == j:
                 continue
-            msg = self._decoders.receive("features", data, i, [inbox.stats, self.stats])
+            msg = self._decoder.receive("features", data, i, [inbox.stats, self.stats])
             if msg is None:
                 inbox.mark_rejected(i)
                 continue
@@ -371,9 +372,11 @@ class CooperativePerceptionEnv(ParallelEnv):
                 "pose": np.array(pose.as_tuple(), np.float32), "links": links}
 
     def _blank(self) -> dict[str, np.ndarray]:
-        """The last observation of an agent whose vehicle left: zeros, no links."""
+        """The last observation of an agent whose vehicle left: zeros, and no links."""
         space = self.observation_space(self.possible_agents[0])
-        return {k: np.maximum(np.zeros(b.shape, np.float32), b.low).astype(np.float32) for k, b in space.spaces.items()}
+        out = {k: np.zeros(b.shape, np.float32) for k, b in space.spaces.items()}
+        out["links"][:] = (NO_LINK, 0.0, NO_LINK)
+        return out
 
 
 def _fraction(action: Any, agent: str) -> float:

@@ -140,3 +140,32 @@ def test_bad_options_and_actions_are_clear_errors() -> None:
             e.step({"cav0": np.array([np.nan])})
     finally:
         e.close()
+
+
+def test_an_agent_whose_vehicle_leaves_is_terminated_and_never_returns() -> None:
+    """The traffic is real; only the backend's step is wrapped so that cav3's vehicle leaves at frame 2."""
+    import dataclasses
+
+    e = parallel_env(INTERSECTION, **FAST)
+    try:
+        e.reset(seed=6)
+        step = e._backend.step
+
+        def without_cav3():  # noqa: ANN202
+            w = step()
+            if w.frame < 2:
+                return w
+            return dataclasses.replace(w, actors=tuple(a for a in w.actors if a.id != "cav3"))
+
+        e._backend.step = without_cav3
+        _, _, term, trunc, _ = e.step(dict.fromkeys(e.agents, np.ones(1, np.float32)))
+        assert not any(term.values()) and "cav3" in e.agents
+        obs, rew, term, trunc, info = e.step(dict.fromkeys(e.agents, np.ones(1, np.float32)))
+        assert term == {"cav0": False, "cav1": False, "cav2": False, "cav3": True} and not any(trunc.values())
+        assert e.observation_space("cav3").contains(obs["cav3"]) and not obs["cav3"]["features"].any()
+        assert e.agents == ["cav0", "cav1", "cav2"] and "cav3" in rew
+        obs, rew, term, _, info = e.step(dict.fromkeys(e.agents, np.ones(1, np.float32)))
+        assert set(obs) == set(rew) == set(term) == {"cav0", "cav1", "cav2"}
+        assert "cav3" not in info  # it sends nothing more; its last message may still be fused while fresh, as in a run
+    finally:
+        e.close()
