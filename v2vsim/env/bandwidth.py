@@ -66,6 +66,12 @@ def bandwidth_curve(scenario: str, fractions: Sequence[float], seeds: Sequence[i
                     rows.append({"fraction": frac, "seed": seed, "method": m, "iou_vehicle": score.iou,
                                  "bytes_per_frame": float(np.mean(received)) if received else 0.0,
                                  "frames": len(received)})
+    except KeyboardInterrupt:
+        if rows:  # what finished is kept: every (share, seed) written so far
+            write_outputs(out, rows, methods)
+            print(f"\nv2vsim bandwidth: interrupted; {len(rows) // len(methods)} (share, seed) runs written to {out}",
+                  file=log)
+        raise
     finally:
         env.close()
         print(file=log)

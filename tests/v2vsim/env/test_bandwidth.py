@@ -40,3 +40,25 @@ def test_bad_fractions_and_cli_errors(tmp_path: Path) -> None:
     r = subprocess.run([sys.executable, "-m", "v2vsim.cli", "bandwidth", SCENARIO, "--seeds", "1", "--fractions",
                         "2", "--out", str(tmp_path)], capture_output=True, text=True, cwd=REPO)
     assert r.returncode == 2 and "--fractions '2'" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_ctrl_c_keeps_the_finished_runs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from v2vsim.env.parallel import CooperativePerceptionEnv
+
+    step = CooperativePerceptionEnv.step
+    calls = {"n": 0}
+
+    def interrupted_on_the_third(self, actions):  # noqa: ANN001, ANN202
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt
+        return step(self, actions)
+
+    monkeypatch.setattr(CooperativePerceptionEnv, "step", interrupted_on_the_third)
+    log = io.StringIO()
+    with pytest.raises(KeyboardInterrupt):
+        bandwidth_curve(SCENARIO, [0.0, 1.0], [3], 2, ["cobevt"], tmp_path, log=log)
+    with open(tmp_path / "bandwidth.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert {(r["fraction"], r["method"]) for r in rows} == {("0.0", "cobevt"), ("0.0", "none")}
+    assert "interrupted; 1 (share, seed) runs written" in log.getvalue()
