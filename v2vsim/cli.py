@@ -97,6 +97,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     overrides = {k: getattr(args, k) for k in ("epochs", "samples_per_epoch", "batch", "lr", "val_samples")
                  if getattr(args, k) is not None}
     targs = TrainArgs(data=Path(args.data), stage=args.stage, out=Path(args.out), work=Path(args.work),
+                      encoder=args.encoder, preset=args.preset,
                       device=args.device, threads=args.threads, seed=args.seed, resume=args.resume,
                       overrides=tuple(overrides.items()), command=command_line(sys.argv[2:]))
     if args.device.startswith("cuda"):
@@ -230,13 +231,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cameras", action="store_true", help="also record the four camera images of every CAV")
     p.set_defaults(func=_cmd_dataset)
 
-    p = sub.add_parser("train", help="train the LiDAR model zoo, stage by stage (README 'Training')")
+    p = sub.add_parser("train", help="train a model zoo (LiDAR, or camera with --encoder), stage by stage "
+                                     "(README 'Training')")
     p.add_argument("--data", required=True, help="dataset directory written by `v2vsim dataset`")
     p.add_argument("--stage", default="all",
                    help="all | single | cache | early | attfuse | fcooper | v2vnet | cobevt | disconet")
     p.add_argument("--out", default="models/weights", help="zoo directory: manifest.json + <encoder>_<preset>/")
     p.add_argument("--work", default="runs/train", help="checkpoints and the feature cache (resumable)")
     p.add_argument("--resume", action="store_true", help="continue the stage from its last checkpoint")
+    p.add_argument("--encoder", choices=["pointpillars", "sinbevt", "lara"], default="pointpillars",
+                   help="the zoo to train: pointpillars (LiDAR) or a camera encoder (needs a --cameras dataset)")
+    p.add_argument("--preset", choices=["tiny", "paper"], default="tiny")
     p.add_argument("--device", default="cpu", help="cpu (default) or cuda")
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     p.add_argument("--seed", type=int, default=0)

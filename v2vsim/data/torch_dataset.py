@@ -88,6 +88,8 @@ class CooperativeDataset(Dataset):
     """Samples of one split. Each item is a dict:
 
     "points": list of [P, 4] float32 clouds (ego first) — LiDAR inputs in each agent's body frame
+    "images": list of [M, 3, h, w] uint8 camera images per agent (with_images), with "intrinsics" [M, 3, 3] and
+    "extrinsics" [M, 4, 4] (camera to body); empty lists without
     "agents": list of agent ids; "rel_poses" [L, 3] (dx, dy, dyaw) in the ego frame; "valid" [L] bool
     "agent_frames": frame index each agent's data comes from (k - delay)
     "vehicle" [S, S] bool: vehicles visible to some CAV (the scored target); "dynamic": all vehicles;
@@ -99,7 +101,7 @@ class CooperativeDataset(Dataset):
 
     def __init__(self, root: Path | str, split: str, max_agents: int = 5, range_m: float | None = None,
                  delays: Sequence[int] = (0,), egos: str = "all", stride: int = 1, seed: int = 0,
-                 with_points: bool = True) -> None:
+                 with_points: bool = True, with_images: bool = False) -> None:
         self.store = FrameStore(Path(root))
         self.split = split
         self.items = self.store.keys(split, egos=egos, stride=stride)
@@ -111,6 +113,7 @@ class CooperativeDataset(Dataset):
         self.seed = seed
         self.epoch = 0
         self.with_points = with_points
+        self.with_images = with_images
 
     def __len__(self) -> int:
         return len(self.items)
@@ -148,9 +151,14 @@ class CooperativeDataset(Dataset):
                 src.update({c: key.frame - delay for c in agents[1:] if c in old})
             agent_poses = {c: _pose(files[src[c]][2], files[src[c]][1], c) for c in agents}
             clouds = {c: files[src[c]][0][f"points_{c}"] for c in agents} if self.with_points else {}
+            cams = {c: tuple(files[src[c]][0][f"{k}_{c}"] for k in ("images", "intrinsics", "extrinsics"))
+                    for c in agents} if self.with_images else {}
         rel = np.array([relative_pose(ego_pose, agent_poses[c]) for c in agents], dtype=np.float32)
         return {
             "points": [torch.from_numpy(clouds[c].astype(np.float32)) for c in agents] if self.with_points else [],
+            "images": [torch.from_numpy(cams[c][0]).permute(0, 3, 1, 2) for c in agents] if cams else [],
+            "intrinsics": [torch.from_numpy(cams[c][1].astype(np.float32)) for c in agents] if cams else [],
+            "extrinsics": [torch.from_numpy(cams[c][2].astype(np.float32)) for c in agents] if cams else [],
             "agents": agents,
             "agent_frames": [src[c] for c in agents],
             "rel_poses": torch.from_numpy(rel),
@@ -170,7 +178,8 @@ class CooperativeDataset(Dataset):
 
 def collate(samples: list[dict]) -> dict:
     """Batch: "points" B lists of clouds, "rel_poses" [B, L, 3] and "valid" [B, L] padded to the largest
-    L, masks stacked [B, S, S], box lists kept as lists."""
+    L, masks stacked [B, S, S], box lists kept as lists; with images, "images" [B, L, M, 3, h, w] uint8,
+    "intrinsics" [B, L, M, 3, 3], "extrinsics" [B, L, M, 4, 4] (padding: zero images, identity matrices)."""
     b, lmax = len(samples), max(len(s["agents"]) for s in samples)
     rel = torch.zeros(b, lmax, 3)
     valid = torch.zeros(b, lmax, dtype=torch.bool)
@@ -179,6 +188,17 @@ def collate(samples: list[dict]) -> dict:
         rel[i, :n] = s["rel_poses"]
         valid[i, :n] = True
     out: dict = {"points": [s["points"] for s in samples], "rel_poses": rel, "valid": valid}
+    if samples[0]["images"]:
+        m, _, h, w = samples[0]["images"][0].shape
+        images = torch.zeros(b, lmax, m, 3, h, w, dtype=torch.uint8)
+        intr = torch.eye(3).expand(b, lmax, m, 3, 3).clone()
+        extr = torch.eye(4).expand(b, lmax, m, 4, 4).clone()
+        for i, s in enumerate(samples):
+            n = len(s["agents"])
+            images[i, :n] = torch.stack(s["images"])
+            intr[i, :n] = torch.stack(s["intrinsics"])
+            extr[i, :n] = torch.stack(s["extrinsics"])
+        out.update(images=images, intrinsics=intr, extrinsics=extr)
     for k in ("vehicle", "dynamic", "visible_self", "road", "lane"):
         out[k] = torch.stack([s[k] for s in samples])
     for k in ("boxes", "boxes_hidden", "boxes_self", "boxes_self_hidden", "key", "agents", "agent_frames"):
@@ -186,6 +206,12 @@ def collate(samples: list[dict]) -> dict:
     return out
 
 
-def tensor_inputs(batch: dict) -> tuple[list[list[Tensor]], Tensor, Tensor]:
-    """(inputs, rel_poses, valid) of a batch, as CooperativePerception.forward takes them."""
-    return batch["points"], batch["rel_poses"], batch["valid"]
+def tensor_inputs(batch: dict, device: torch.device | str = "cpu") -> tuple[object, Tensor, Tensor]:
+    """(inputs, rel_poses, valid) of a batch on `device`, as CooperativePerception.forward takes them: the
+    clouds, or (images in [0, 1], intrinsics, extrinsics) when the batch carries images."""
+    if "images" in batch:
+        inputs: object = (batch["images"].to(device).float().div(255.0), batch["intrinsics"].to(device),
+                          batch["extrinsics"].to(device))
+    else:
+        inputs = [[p.to(device) for p in ps] for ps in batch["points"]]
+    return inputs, batch["rel_poses"].to(device), batch["valid"].to(device)

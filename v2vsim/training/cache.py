@@ -32,8 +32,9 @@ class FeatureCache:
 
 @torch.no_grad()
 def build_feature_cache(encoder: nn.Module, store: FrameStore, splits: tuple[str, ...], folder: Path,
-                        stride: int = 1, log=sys.stderr) -> FeatureCache:
-    """Encode every CAV of every `stride`-th frame of `splits`; resumable (rows already written are kept)."""
+                        stride: int = 1, log=sys.stderr, camera: bool = False) -> FeatureCache:
+    """Encode every CAV of every `stride`-th frame of `splits` (its LiDAR sweep, or with `camera` its four
+    images); resumable (rows already written are kept)."""
     folder.mkdir(parents=True, exist_ok=True)
     keys = []
     for split in splits:
@@ -59,12 +60,21 @@ def build_feature_cache(encoder: nn.Module, store: FrameStore, splits: tuple[str
     opened: tuple = (None, None)
     for i in range(start, len(keys), batch):
         chunk = keys[i:i + batch]
-        clouds = []
+        inputs = []
         for r, k, cav in chunk:
             if (r, k) != opened[0]:
                 opened = ((r, k), store.frame(r, k))
-            clouds.append(torch.from_numpy(opened[1][f"points_{cav}"].astype(np.float32)))
-        feats = encoder(clouds)  # [b, C, F, F]
+            f = opened[1]
+            if camera:
+                inputs.append((torch.from_numpy(f[f"images_{cav}"]).permute(0, 3, 1, 2).float().div(255.0),
+                               torch.from_numpy(f[f"intrinsics_{cav}"].astype(np.float32)),
+                               torch.from_numpy(f[f"extrinsics_{cav}"].astype(np.float32))))
+            else:
+                inputs.append(torch.from_numpy(f[f"points_{cav}"].astype(np.float32)))
+        if camera:  # [b, M, 3, h, w], [b, M, 3, 3], [b, M, 4, 4]
+            feats = encoder(*(torch.stack([x[i] for x in inputs]) for i in range(3)))
+        else:
+            feats = encoder(inputs)  # [b, C, F, F]
         data[i:i + len(chunk)] = feats.numpy().astype(np.float16)
         n = i + len(chunk)
         if (n // batch) % 25 == 0 or n == len(keys):

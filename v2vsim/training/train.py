@@ -1,5 +1,7 @@
-"""Training stages of the LiDAR zoo (CoBEVT authors' recipe: single-agent model first, then fusion
-on the frozen encoder so that every method fuses the very same wire message).
+"""Training stages of a model zoo (CoBEVT authors' recipe: single-agent model first, then fusion
+on the frozen encoder so that every method fuses the very same wire message). LiDAR (pointpillars) or
+camera (sinbevt, lara: `--encoder`); a camera zoo has no `early` stage (early fusion ships LiDAR points),
+and its DiscoNet trains without distillation (its teacher is early fusion).
 
     single   encoder + decoder/heads on one CAV's own sweep (this is `none`, and `late` per CAV);
              targets: the vehicles the CAV's own sensors saw (others are ignored, not negatives)
@@ -40,9 +42,9 @@ from models.losses import (
     segmentation_loss,
     static_target,
 )
-from models.registry import build_cooperative
+from models.registry import MODALITY, build_cooperative
 from v2vsim.data.layout import DatasetError, runs_of
-from v2vsim.data.torch_dataset import CooperativeDataset, collate
+from v2vsim.data.torch_dataset import CooperativeDataset, collate, tensor_inputs
 from v2vsim.evaluate import box_iou, fuse_and_score
 from v2vsim.metrics import ApAccumulator, MethodScore
 from v2vsim.perception import FusionInputs, encode_points, late_outputs
@@ -209,8 +211,7 @@ def forward(model: nn.Module, spec: StageSpec, batch: dict, cache: FeatureCache 
         feats = _features(cache, batch, enc.out_channels, enc.out_cells).to(dev)
         fused = model.fuse(feats, rel, valid)
         return {"fused": fused, **model.heads(fused)}
-    points = [[p.to(dev) for p in ps] for ps in batch["points"]]
-    return model(points, rel, valid)
+    return model(*tensor_inputs(batch, dev))
 
 
 class Progress:
@@ -252,6 +253,9 @@ def sample_fusion_inputs(s: dict, single: nn.Module, cache: FeatureCache | None 
     for j, (c, k) in enumerate(zip(s["agents"], s["agent_frames"], strict=True)):
         if cache is not None:
             feats = cache.get(s["key"].run, k, c).astype(np.float32)
+        elif s["images"]:  # [M, 3, h, w] uint8 -> the encoder's [1, M, 3, h, w] in [0, 1]
+            feats = single.encoder(s["images"][j][None].float().div(255.0), s["intrinsics"][j][None],
+                                   s["extrinsics"][j][None])[0].float().numpy()
         else:
             feats = encode_points(single.encoder, s["points"][j].numpy())
         inp.features[c] = feats.astype(np.float16).astype(np.float32)
@@ -282,23 +286,30 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
     """Train (or resume) one stage and export its checkpoint into the zoo; returns the validation metrics."""
     torch.set_num_threads(args.threads)
     dev = torch.device(args.device)
+    camera = MODALITY[args.encoder] == "camera"
+    if camera and args.stage == "early":
+        raise ValueError(f"--stage early: early fusion ships LiDAR points; the {args.encoder} (camera) zoo has no "
+                         "early stage")
     if args.stage == "cache":
-        single = build_stage_model(args, SPECS["early"])  # any model with the single-agent encoder
+        single = build_stage_model(args, SPECS["none"])  # the single-agent encoder
         store = CooperativeDataset(args.data, "train").store
         build_feature_cache(single.encoder, store, ("train", "val"), args.work / "cache", stride=CACHE_STRIDE,
-                            log=log)
+                            log=log, camera=camera)
         return {}
     spec = dataclasses.replace(SPECS[args.stage], **dict(args.overrides))
+    if camera and spec.distill_weight > 0:  # DiscoNet's teacher is early fusion: LiDAR only
+        spec = dataclasses.replace(spec, distill_weight=0.0)
     cache = FeatureCache(args.work / "cache") if spec.inputs == "cache" else None
+    raw = spec.inputs == "points" or spec.distill_weight > 0  # the encoder (or the teacher) runs on sensor data
     train = CooperativeDataset(args.data, "train", max_agents=spec.max_agents, delays=spec.delays, seed=args.seed,
-                               with_points=spec.inputs == "points" or spec.distill_weight > 0, stride=spec.stride)
+                               with_points=raw and not camera, with_images=raw and camera, stride=spec.stride)
     val = CooperativeDataset(args.data, "val", max_agents=5 if "late" in spec.methods or not spec.methods
                              else spec.max_agents,
-                             egos="first", with_points=cache is None,
-                             stride=2)
+                             egos="first", with_points=cache is None and not camera,
+                             with_images=cache is None and camera, stride=2)
     model = build_stage_model(args, spec).to(dev)
     # the single-agent model: its encoder makes the wire features; with its heads, CAVs' late outputs
-    single = model if spec.name in ("single", "none") else build_stage_model(args, SPECS["early"])
+    single = model if spec.name in ("single", "none") else build_stage_model(args, SPECS["none"])
     teacher = None
     if spec.distill_weight > 0:
         teacher = build_cooperative(args.encoder, "early", args.preset)
@@ -351,8 +362,7 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
             losses = perception_loss(out, batch, spec.target, assigner, spec.lane_weight)
             if teacher is not None:
                 with torch.no_grad():
-                    t_out = teacher([[p.to(dev) for p in ps] for ps in batch["points"]],
-                                    batch["rel_poses"].to(dev), batch["valid"].to(dev))
+                    t_out = teacher(*tensor_inputs(batch, dev))
                 losses["kd"] = spec.distill_weight * distill_loss(out["fused"], t_out["fused"])
                 losses["total"] = losses["total"] + losses["kd"]
             opt.zero_grad(set_to_none=True)
@@ -405,16 +415,16 @@ def export(args: TrainArgs, spec: StageSpec, state: dict, history: list, wall_s:
     return path
 
 
-def stages_for(name: str) -> list[str]:
+def stages_for(name: str, encoder: str = "pointpillars") -> list[str]:
     if name == "all":
-        return list(STAGE_ORDER)
+        return [s for s in STAGE_ORDER if MODALITY[encoder] == "lidar" or s != "early"]
     if name not in STAGE_ORDER:
         raise ValueError(f"--stage {name!r}: allowed: all, {', '.join(STAGE_ORDER)}")
     return [name]
 
 
 def main_train(args: TrainArgs, log=sys.stderr) -> int:
-    for st in stages_for(args.stage):
+    for st in stages_for(args.stage, args.encoder):
         t0 = time.monotonic()
         run_stage(dataclasses.replace(args, stage=st), log=log)
         print(f"[{st}] done in {(time.monotonic() - t0) / 60:.1f} min", file=log, flush=True)

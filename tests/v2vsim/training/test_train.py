@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import io
 
+import pytest
 import torch
 
 from models import zoo
@@ -81,3 +82,73 @@ def test_resume_continues_mid_stage(tiny_dataset, tmp_path, monkeypatch) -> None
     assert "resuming at epoch 3" in log.getvalue()
     again = torch.load(tmp_path / "work" / "single" / "last.pt", weights_only=False)
     assert all(torch.equal(again["model"][k], v) for k, v in first["model"].items())
+
+
+# ---- the camera track (SinBEVT): the same stages on images -----------------------------------------------
+
+CAMERA = ("perception.modality=camera", "perception.encoder=sinbevt")
+
+
+@pytest.fixture(scope="module")
+def camera_dataset(tmp_path_factory: pytest.TempPathFactory):
+    """The intersection with cameras and camera visibility: 2 training frames (seed 710), 2 validation (711)."""
+    from v2vsim.data.record import record_dataset
+
+    root = tmp_path_factory.mktemp("camera")
+    record_dataset("scenarios/intersection.yaml", [710], 2, root, split="train", overrides=CAMERA, cameras=True,
+                   log=io.StringIO())
+    record_dataset("scenarios/intersection.yaml", [711], 2, root, split="val", overrides=CAMERA, cameras=True,
+                   log=io.StringIO())
+    return root
+
+
+def test_camera_samples_round_trip_and_a_few_steps_lower_the_loss(camera_dataset, tmp_path) -> None:
+    import numpy as np
+
+    from v2vsim.data.torch_dataset import FrameStore
+
+    ds = CooperativeDataset(camera_dataset, "train", max_agents=2, with_points=False, with_images=True)
+    s = ds[0]
+    with FrameStore(camera_dataset).frame(s["key"].run, s["key"].frame) as f:
+        for j, c in enumerate(s["agents"]):
+            assert np.array_equal(s["images"][j].permute(0, 2, 3, 1).numpy(), f[f"images_{c}"])
+            assert np.array_equal(s["extrinsics"][j].numpy(), f[f"extrinsics_{c}"])
+    assert s["images"][0].shape == (4, 3, 150, 200) and s["images"][0].dtype == torch.uint8 and not s["points"]
+    batch = collate([ds[0], ds[len(ds) - 1]])
+    assert batch["images"].shape[:3] == (2, 2, 4) and batch["intrinsics"].shape == (2, 2, 4, 3, 3)
+
+    args = dataclasses.replace(_args(camera_dataset, tmp_path, "single"), encoder="sinbevt")
+    spec = SPECS["single"]
+    model = build_stage_model(args, spec)
+    batch = collate([ds[0], ds[len(ds) - 1]])
+    batch["valid"][:, 1:] = False  # single-agent stage: the ego only
+    opt = torch.optim.AdamW(model.parameters(), lr=2e-3)
+    losses = []
+    for _ in range(8):
+        loss = perception_loss(forward(model, spec, batch, None, torch.device("cpu")), batch, "self", None)
+        opt.zero_grad()
+        loss["total"].backward()
+        opt.step()
+        losses.append(float(loss["total"].detach()))
+    assert set(loss) == {"dyn", "static", "total"}  # no detection head on the camera track
+    assert losses[-1] < 0.7 * losses[0], losses
+
+
+def test_camera_stages_chain_into_a_zoo_a_camera_run_loads(camera_dataset, tmp_path) -> None:
+    from v2vsim.training.train import stages_for
+
+    assert "early" not in stages_for("all", "sinbevt") and "early" in stages_for("all", "pointpillars")
+    log = io.StringIO()
+    for stage in ("single", "cache", "cobevt"):
+        run_stage(dataclasses.replace(_args(camera_dataset, tmp_path, stage), encoder="sinbevt"), log=log)
+    with pytest.raises(ValueError, match="early fusion ships LiDAR points"):
+        run_stage(dataclasses.replace(_args(camera_dataset, tmp_path, "early"), encoder="sinbevt"), log=log)
+    assert "validation: cobevt: IoU veh" in log.getvalue()
+    entry = zoo.read_manifest(tmp_path / "zoo")["zoos"]["sinbevt_tiny"]
+    assert entry["encoder"] == "single.pt" and entry["methods"]["cobevt"] == "cobevt.pt"
+    sc = load_scenario("scenarios/intersection.yaml", [*CAMERA, f"perception.weights={tmp_path / 'zoo'}"])
+    enc = build_agent_encoder(sc)
+    models = build_method_models(sc, enc, ("none", "cobevt"))
+    saved = torch.load(tmp_path / "zoo" / "sinbevt_tiny" / "cobevt.pt", weights_only=True)["state_dict"]
+    got = models["cobevt"].fusion.state_dict()
+    assert all(torch.equal(got[k[len("fusion."):]], v) for k, v in saved.items() if k.startswith("fusion."))
