@@ -130,8 +130,6 @@ class CooperativePerceptionEnv(ParallelEnv):
         self.render_mode = render_mode
         self.sc: Scenario = load_scenario(self.scenario_path, overrides)
         sc = self.sc
-        if sc.perception.modality != "lidar" and sc.perception.encoder == "pointpillars":
-            raise ConfigError(f"{sc.source}: perception: pointpillars needs modality lidar")
         self.possible_agents: list[str] = [cav_id(i) for i in range(sc.cavs.count)]
         self.agents: list[str] = []
         self.encoder = build_agent_encoder(sc)
