@@ -40,7 +40,7 @@ from v2vsim.perception import (
     build_method_models,
     compress,
     late_outputs,
-    vehicle_confidence,
+    pooled_confidence,
 )
 from v2vsim.perception import encode as encode_features
 from v2vsim.recording.scan import encode_scan, world_points
@@ -60,10 +60,13 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
     key = read_key(sc.comm.auth.key_file)
     encoder = build_agent_encoder(sc)
     compressor = build_compressor(sc, encoder.out_channels)
-    late_model = build_method_models(sc, encoder, ("late",))["late"] if "late" in methods else None
+    late = "late" in methods
     # comm.share topk: the CAV ranks its cells by its own single-agent confidence; an ego keeps its whole map
     share = sc.comm.share.fraction if sc.comm.share.policy == "topk" and me not in args.egos else 1.0
-    single = build_method_models(sc, encoder, ("none",))["none"] if share < 1.0 else None
+    # its own single-agent model (late fusion's checkpoint is none's): decoded once a frame for both uses
+    single = None
+    if late or share < 1.0:
+        single = build_method_models(sc, encoder, ("late",) if late else ("none",))["late" if late else "none"]
     static = static_from_bytes(bus.fetch("static", "main", START_TIMEOUT_S))
     assets = build_map_assets(static)
     worlds: queue.Queue[bytes] = queue.Queue()
@@ -132,18 +135,18 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
                 feats = encode_features(encoder, sf, sc)
             stamp = {"run_id": args.run_id, "sender_id": me, "frame": world.frame, "capture_time": world.time,
                      "sender_pose": actor.pose.as_tuple(), "compression": sc.comm.compression}
-            confidence = None
+            confidence = maps = boxes = None
             if single is not None:
-                with timer.stage("decoding"):
-                    confidence = vehicle_confidence(single, feats)
+                with timer.stage("decoding"):  # its own outputs: decoder + heads
+                    maps, boxes = late_outputs(single, feats, boxes=late)
+                    if share < 1.0:
+                        confidence = pooled_confidence(maps[0], feats.shape[-1])
             with timer.stage("comm"):
                 bus.put("features", encode(feature_message(compress(compressor, feats), confidence, share, stamp,
                                                            sc.comm.channel_compression), key))
                 if "early" in methods and lidar:
                     bus.put("points", encode(Message(kind="points", payload=body_frame_points(sf, sc), **stamp), key))
-            if late_model is not None:
-                with timer.stage("decoding"):  # its own late-fusion outputs: decoder + heads
-                    maps, boxes = late_outputs(late_model, feats)
+            if late:
                 with timer.stage("comm"):
                     bus.put("outputs", encode(Message(kind="outputs", payload=maps, extras={"boxes": boxes}, **stamp),
                                               key))

@@ -197,26 +197,28 @@ def encode_points(encoder: nn.Module, points: np.ndarray) -> np.ndarray:
 
 
 @torch.no_grad()
-def late_outputs(model: nn.Module, features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def late_outputs(model: nn.Module, features: np.ndarray, boxes: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """A CAV's own decoded outputs for late fusion: probabilities [3, S, S] (vehicle, road, lane) and
-    boxes [K, 6] (x, y, l, w, yaw, score) in its body frame."""
-    out = model.heads(torch.from_numpy(features)[None])
+    boxes [K, 6] (x, y, l, w, yaw, score) in its body frame (none decoded with `boxes=False`: [0, 6])."""
+    out = model.heads(torch.from_numpy(np.ascontiguousarray(features, dtype=np.float32))[None])
     probs = segmentation_probabilities(out["dynamic"], out["static"])
     maps = np.stack([probs[k][0].numpy() for k in ("vehicle", "road", "lane")])
-    if "det_cls" in out:
-        boxes = decode_detections(out["det_cls"], out["det_reg"], model.anchors)[0].numpy()
-    else:
-        boxes = np.zeros((0, 6), np.float32)
-    return maps.astype(np.float32), boxes.astype(np.float32)
+    found = np.zeros((0, 6), np.float32)
+    if boxes and "det_cls" in out:
+        found = decode_detections(out["det_cls"], out["det_reg"], model.anchors)[0].numpy()
+    return maps.astype(np.float32), found.astype(np.float32)
 
 
-@torch.no_grad()
+def pooled_confidence(p_vehicle: np.ndarray, cells: int) -> np.ndarray:
+    """A vehicle probability map [S, S] max-pooled to the feature grid [cells, cells]: what a CAV ranks its
+    feature cells by under comm.share topk (Where2comm's spatial confidence map, Eq. 2)."""
+    return torch.nn.functional.adaptive_max_pool2d(torch.from_numpy(p_vehicle)[None, None], cells)[0, 0].numpy()
+
+
 def vehicle_confidence(model: nn.Module, features: np.ndarray) -> np.ndarray:
-    """The single-agent heads' vehicle probability, max-pooled to the feature grid: [F, F] from features
-    [C, F, F]. What a CAV ranks its cells by under comm.share topk (Where2comm's spatial confidence, Eq. 2)."""
-    out = model.heads(torch.from_numpy(np.ascontiguousarray(features, dtype=np.float32))[None])
-    p = segmentation_probabilities(out["dynamic"])["vehicle"]  # [1, S, S], S = 8F
-    return torch.nn.functional.adaptive_max_pool2d(p[None], features.shape[-1])[0, 0].numpy()
+    """The single-agent heads' vehicle probability on features [C, F, F], pooled to [F, F] (pooled_confidence)."""
+    maps, _ = late_outputs(model, features, boxes=False)
+    return pooled_confidence(maps[0], features.shape[-1])
 
 
 @dataclass
