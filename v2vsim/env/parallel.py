@@ -230,8 +230,10 @@ class CooperativePerceptionEnv(ParallelEnv):
         infos: dict[str, dict] = {a: {"frame": world.frame, "fraction": fractions[a], "bytes": nbytes[a],
                                       "cells": 0 if a not in sent else cells_sent(sent[a][1], self.cells ** 2)}
                                   for a in self.agents}
+        # every receiver gets the same bytes: validated once (a rejection counted once, in self.stats)
+        decoded = {i: self._decoder.receive("features", data, i, [self.stats]) for i, (data, _) in sent.items()}
         for j in receivers:
-            inp = self._receive(j, sent, world)
+            inp = self._receive(j, sent, decoded, world)
             gt = bev_ground_truth(world, j, sc.bev, visible, assets=self._assets)
             preds = {m: self._predict(m, inp) for m in self.options.methods}
             for m, p in preds.items():
@@ -305,8 +307,10 @@ class CooperativePerceptionEnv(ParallelEnv):
                             frozenset(seen))
         return out
 
-    def _receive(self, j: str, sent: dict[str, tuple[bytes, Message]], world: WorldState) -> FusionInputs:
-        """What receiver j fuses at this frame: its own full map, and what its channel delivered."""
+    def _receive(self, j: str, sent: dict[str, tuple[bytes, Message]], decoded: dict[str, Message | None],
+                 world: WorldState) -> FusionInputs:
+        """What receiver j fuses at this frame: its own full map, and what its channel delivered (`decoded`: each
+        sent message as the wire spec decoded it, None if it was rejected)."""
         inbox = self._inboxes[j]
         me = world.actor(j).pose
         own = self._sensed[j].payload.astype(np.float16)  # its whole map, as the wire would carry it
@@ -318,7 +322,7 @@ class CooperativePerceptionEnv(ParallelEnv):
         for i, (data, _) in sent.items():
             if i == j:
                 continue
-            msg = self._decoder.receive("features", data, i, [inbox.stats, self.stats])
+            msg = decoded[i]
             if msg is None:
                 inbox.mark_rejected(i)
                 continue
