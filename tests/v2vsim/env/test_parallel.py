@@ -21,16 +21,9 @@ HIGHWAY = str(REPO / "scenarios" / "highway_intersection.yaml")
 FAST = {"features": "pooled", "receivers": "egos"}
 
 
-def test_parallel_api_on_sumo() -> None:
-    e = parallel_env(INTERSECTION, **FAST)
-    try:
-        parallel_api_test(e, num_cycles=3)
-    finally:
-        e.close()
-
-
-def test_parallel_api_on_highway_env() -> None:
-    e = parallel_env(HIGHWAY, **FAST)
+@pytest.mark.parametrize("scenario", [INTERSECTION, HIGHWAY], ids=["sumo", "highway-env"])
+def test_parallel_api(scenario: str) -> None:
+    e = parallel_env(scenario, **FAST)
     try:
         parallel_api_test(e, num_cycles=3)
     finally:

@@ -23,21 +23,27 @@ def _args(tiny_dataset, tmp_path, stage: str, **over) -> TrainArgs:
                                       **over}.items()))
 
 
-def test_a_few_steps_lower_the_loss(tiny_dataset, tmp_path) -> None:
+def _single_stage_steps(model: torch.nn.Module, batch: dict, assigner: AnchorTargetAssigner | None,
+                        steps: int) -> tuple[list[float], set[str]]:
+    """`steps` optimiser steps of the single stage on one batch: the total loss of each, and the loss terms."""
     spec = SPECS["single"]
-    model = build_stage_model(_args(tiny_dataset, tmp_path, "single"), spec)
-    ds = CooperativeDataset(tiny_dataset, "train", max_agents=1)
-    batch = collate([ds[0], ds[len(ds) - 1]])
-    assigner = AnchorTargetAssigner(model.anchors)
     opt = torch.optim.AdamW(model.parameters(), lr=2e-3)
     losses = []
-    for _ in range(10):
+    for _ in range(steps):
         loss = perception_loss(forward(model, spec, batch, None, torch.device("cpu")), batch, "self", assigner)
         opt.zero_grad()
         loss["total"].backward()
         opt.step()
         losses.append(float(loss["total"].detach()))
-    assert set(loss) == {"dyn", "static", "det", "total"}
+    return losses, set(loss)
+
+
+def test_a_few_steps_lower_the_loss(tiny_dataset, tmp_path) -> None:
+    model = build_stage_model(_args(tiny_dataset, tmp_path, "single"), SPECS["single"])
+    ds = CooperativeDataset(tiny_dataset, "train", max_agents=1)
+    batch = collate([ds[0], ds[len(ds) - 1]])
+    losses, terms = _single_stage_steps(model, batch, AnchorTargetAssigner(model.anchors), 10)
+    assert terms == {"dyn", "static", "det", "total"}
     assert losses[-1] < 0.7 * losses[0], losses
 
 
@@ -118,19 +124,11 @@ def test_camera_samples_round_trip_and_a_few_steps_lower_the_loss(camera_dataset
     assert batch["images"].shape[:3] == (2, 2, 4) and batch["intrinsics"].shape == (2, 2, 4, 3, 3)
 
     args = dataclasses.replace(_args(camera_dataset, tmp_path, "single"), encoder="sinbevt")
-    spec = SPECS["single"]
-    model = build_stage_model(args, spec)
+    model = build_stage_model(args, SPECS["single"])
     batch = collate([ds[0], ds[len(ds) - 1]])
     batch["valid"][:, 1:] = False  # single-agent stage: the ego only
-    opt = torch.optim.AdamW(model.parameters(), lr=2e-3)
-    losses = []
-    for _ in range(8):
-        loss = perception_loss(forward(model, spec, batch, None, torch.device("cpu")), batch, "self", None)
-        opt.zero_grad()
-        loss["total"].backward()
-        opt.step()
-        losses.append(float(loss["total"].detach()))
-    assert set(loss) == {"dyn", "static", "total"}  # no detection head on the camera track
+    losses, terms = _single_stage_steps(model, batch, None, 8)
+    assert terms == {"dyn", "static", "total"}  # no detection head on the camera track
     assert losses[-1] < 0.7 * losses[0], losses
 
 
