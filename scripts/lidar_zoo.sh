@@ -8,15 +8,7 @@ DATA=${1:-data/lidar}
 WORK=${2:-runs/train}
 ZOO=${3:-models/weights}
 V=${V2VSIM:-v2vsim}
-# Both shipped networks, four traffic densities, the scenarios' own CAV placement (they meet from frame 0);
-# train / val seeds disjoint from each other and from the evaluation seeds 0-9 (default seed 0 included).
-for sc in intersection t_junction; do
-  $V dataset scenarios/$sc.yaml --seeds 100-102 --frames 150 --out "$DATA" --split train --set traffic.background_per_hour=600
-  $V dataset scenarios/$sc.yaml --seeds 103-105 --frames 150 --out "$DATA" --split train --set traffic.background_per_hour=900
-  $V dataset scenarios/$sc.yaml --seeds 106-107 --frames 150 --out "$DATA" --split train --set traffic.background_per_hour=1200
-  $V dataset scenarios/$sc.yaml --seeds 108-109 --frames 150 --out "$DATA" --split train --set traffic.background_per_hour=1500
-  $V dataset scenarios/$sc.yaml --seeds 90-91 --frames 100 --out "$DATA" --split val
-done
+scripts/zoo_data.sh "$DATA" 10
 # single (encoder + heads) -> cache (its frozen features) -> none/late heads, early, then every intermediate
 # method on the same cached features; DiscoNet last (its teacher is early).
 for stage in single cache none early cobevt v2vnet attfuse fcooper disconet; do

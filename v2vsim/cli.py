@@ -82,11 +82,12 @@ def _cmd_dataset(args: argparse.Namespace) -> int:
     try:
         seeds = parse_seeds(args.seeds)
         out = record_dataset(args.scenario, seeds, args.frames, Path(args.out), split=args.split,
-                             overrides=tuple(args.overrides), cameras=args.cameras)
+                             overrides=tuple(args.overrides), cameras=args.cameras,
+                             traffic_only=args.traffic_only, jobs=args.jobs)
     except (ValueError, DatasetError) as e:
         print(f"v2vsim: error: {e}", file=sys.stderr)
         return 2
-    print(f"dataset: {out}/manifest.json")
+    print(f"traffic: {out}/*/traffic" if args.traffic_only else f"dataset: {out}/manifest.json")
     return 0
 
 
@@ -99,6 +100,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     targs = TrainArgs(data=Path(args.data), stage=args.stage, out=Path(args.out), work=Path(args.work),
                       encoder=args.encoder, preset=args.preset,
                       device=args.device, threads=args.threads, seed=args.seed, resume=args.resume,
+                      val_every=args.val_every, workers=args.workers,
                       overrides=tuple(overrides.items()), command=command_line(sys.argv[2:]))
     if args.device.startswith("cuda"):
         import torch
@@ -229,6 +231,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--split", default="train", choices=["train", "val", "eval"],
                    help="split of these seeds; a scenario's seeds may belong to one split only")
     p.add_argument("--cameras", action="store_true", help="also record the four camera images of every CAV")
+    p.add_argument("--traffic-only", action="store_true",
+                   help="only simulate and save each run's traffic (<run>/traffic/); a later call senses from it, "
+                        "without the simulator")
+    p.add_argument("--jobs", type=int, default=1, help="seeds sensed at once, one process each (default 1)")
     p.set_defaults(func=_cmd_dataset)
 
     p = sub.add_parser("train", help="train a model zoo (LiDAR, or camera with --encoder), stage by stage "
@@ -250,6 +256,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--batch", type=int, default=None, help="override the stage's default")
     p.add_argument("--lr", type=float, default=None, help="override the stage's default (peak, one-cycle)")
     p.add_argument("--val-samples", type=int, default=None, help="validation samples after each epoch")
+    p.add_argument("--val-every", type=int, default=1, help="validate every N epochs (and after the last)")
+    p.add_argument("--workers", type=int, default=0,
+                   help="data-loading processes (default 0: in the training process; a GPU wants several)")
     p.set_defaults(func=_cmd_train)
 
     p = sub.add_parser("sweep", help="run a scenario over a grid of overrides x seeds: sweep.csv/json/md, plots "

@@ -7,10 +7,13 @@ traffic, the sensor noise and hence every byte of a frame follow from (scenario,
 
 from __future__ import annotations
 
+import gzip
 import json
+import multiprocessing
 import subprocess
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +37,7 @@ from v2vsim.sensing import sense
 from v2vsim.sensors.scene import build_map_assets, build_scene
 from v2vsim.traffic import make_backend
 from v2vsim.world import WorldState
+from v2vsim.world_io import static_from_bytes, static_to_bytes, world_from_bytes, world_to_bytes
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -96,15 +100,137 @@ def _write_manifest(root: Path, doc: dict) -> None:
     tmp.replace(root / "manifest.json")
 
 
+TRAFFIC_DIR = "traffic"  # <run>/traffic/: static.npz + worlds.jsonl.gz (v2vsim.world_io, no pickle)
+
+
+def record_traffic(sc: Scenario, frames: int, run_dir: Path) -> list[WorldState]:
+    """Step the scenario's traffic backend for up to `frames` ticks (fewer if every CAV has left) and
+    save the world states under `run_dir`/traffic, so that sensing can be (re)done without the simulator."""
+    worlds: list[WorldState] = []
+    with make_backend(sc) as backend:
+        world = backend.reset()
+        for k in range(frames):
+            if k > 0:
+                world = backend.step()
+            if not world.cavs:
+                break
+            worlds.append(world)
+        static = backend.static
+    folder = run_dir / TRAFFIC_DIR
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "static.npz").write_bytes(static_to_bytes(static))
+    tmp = folder / "worlds.jsonl.gz.tmp"
+    with gzip.open(tmp, "wb") as f:
+        for w in worlds:
+            f.write(world_to_bytes(w) + b"\n")
+    tmp.replace(folder / "worlds.jsonl.gz")
+    (folder / "traffic.json").write_text(json.dumps({"seed": sc.seed, "frames_asked": frames,
+                                                     "frames": len(worlds), "overrides": list(sc.overrides)}))
+    return worlds
+
+
+def load_traffic(run_dir: Path, frames: int, overrides: tuple[str, ...]) -> list[WorldState] | None:
+    """The world states `record_traffic` saved for this run and request, or None when there are none."""
+    folder = run_dir / TRAFFIC_DIR
+    meta_path = folder / "traffic.json"
+    if not meta_path.is_file():
+        return None
+    meta = json.loads(meta_path.read_text())
+    if meta.get("frames_asked") != frames or meta.get("overrides") != list(overrides):
+        return None  # recorded for another request: simulate again
+    try:
+        static = static_from_bytes((folder / "static.npz").read_bytes())
+        with gzip.open(folder / "worlds.jsonl.gz", "rb") as f:
+            worlds = [world_from_bytes(line, static) for line in f if line.strip()]
+    except (OSError, ValueError) as e:
+        raise DatasetError(f"{folder}: recorded traffic unreadable ({e}); delete the folder to simulate again"
+                           ) from None
+    if len(worlds) != meta.get("frames"):
+        raise DatasetError(f"{folder}: {len(worlds)} world states, traffic.json says {meta.get('frames')}; "
+                           "delete the folder to simulate again")
+    return worlds
+
+
+def _run_traffic(scenario_path: str, seed: int, frames: int, out: Path, overrides: tuple[str, ...]
+                 ) -> tuple[Scenario, Path, list[WorldState]]:
+    """A seed's scenario, run folder and world states: recorded earlier under the run folder, or simulated now."""
+    sc = load_scenario(scenario_path, (*overrides, f"seed={seed}"))
+    run_dir = out / run_name(sc.name, seed)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    worlds = load_traffic(run_dir, frames, sc.overrides)
+    if worlds is None:
+        worlds = record_traffic(sc, frames, run_dir)
+    return sc, run_dir, worlds
+
+
+def _sense_frames(sc: Scenario, run_dir: Path, worlds: list[WorldState], ks: range, cameras: bool,
+                  progress=None) -> None:
+    """Sense and write frames `ks` of a run. `progress(k)` is called after each frame written."""
+    assets = build_map_assets(worlds[0].static)
+    for k in ks:
+        arrays = record_frame(worlds[k], sc, assets, cameras)
+        tmp = run_dir / f".f{k:05d}.tmp.npz"
+        np.savez_compressed(tmp, **arrays)
+        tmp.replace(frame_path(run_dir, k))
+        if progress is not None:
+            progress(k)
+
+
+def _write_run_json(sc: Scenario, run_dir: Path, frames: int, cameras: bool) -> None:
+    (run_dir / "run.json").write_text(json.dumps({
+        "scenario": sc.name, "source": str(sc.source), "seed": sc.seed, "frames": frames,
+        "cavs": [f"cav{i}" for i in range(sc.cavs.count)], "bev": {"size_m": sc.bev.size_m, "cells": sc.bev.cells},
+        "range_m": sc.comm.range_m, "rate_hz": sc.rate_hz, "lidar_height_m": sc.sensors.lidar.height_m,
+        "modality": sc.perception.modality, "cameras": cameras, "overrides": list(sc.overrides)}, indent=1))
+
+
+def record_run(scenario_path: str, seed: int, frames: int, out: Path, overrides: tuple[str, ...] = (),
+               cameras: bool = False, traffic_only: bool = False, progress=None) -> int:
+    """One seed: its traffic (recorded earlier under the run folder, or simulated now), then with
+    `traffic_only` False every frame sensed and written. Returns the frames recorded.
+    `progress(k)` is called after each frame written."""
+    sc, run_dir, worlds = _run_traffic(scenario_path, seed, frames, out, overrides)
+    if traffic_only:
+        return len(worlds)
+    _sense_frames(sc, run_dir, worlds, range(len(worlds)), cameras, progress)
+    _write_run_json(sc, run_dir, len(worlds), cameras)
+    return len(worlds)
+
+
+def _traffic_job(job: tuple) -> tuple[int, int]:
+    scenario_path, seed, frames, out, overrides = job
+    return seed, len(_run_traffic(scenario_path, seed, frames, out, overrides)[2])
+
+
+def _sense_job(job: tuple) -> tuple[int, int]:
+    """Frames lo..hi-1 of one seed's recorded traffic, in a worker process (one torch thread)."""
+    import torch
+
+    torch.set_num_threads(1)
+    scenario_path, seed, frames, out, overrides, cameras, lo, hi = job
+    sc, run_dir, worlds = _run_traffic(scenario_path, seed, frames, out, overrides)
+    _sense_frames(sc, run_dir, worlds, range(lo, min(hi, len(worlds))), cameras)
+    return seed, min(hi, len(worlds)) - lo
+
+
+SENSE_CHUNK = 25  # frames per parallel sensing task: each task builds the map assets once
+
+
 def record_dataset(scenario_path: str, seeds: list[int], frames: int, out: Path, split: str = "train",
-                   overrides: tuple[str, ...] = (), cameras: bool = False, log=sys.stderr) -> Path:
+                   overrides: tuple[str, ...] = (), cameras: bool = False, log=sys.stderr,
+                   traffic_only: bool = False, jobs: int = 1) -> Path:
     """Record `frames` frames of every seed into `out`, adding the runs to its manifest.
 
-    A run already complete in the manifest is skipped (so a command can be re-run to resume)."""
+    A run already complete in the manifest is skipped (so a command can be re-run to resume).
+    `traffic_only`: only simulate and save each run's traffic (no sensing, no manifest entry); a later
+    call senses from it without the simulator (e.g. on a machine without SUMO). `jobs` > 1 spreads the
+    seeds' traffic, then their frames in chunks of SENSE_CHUNK, over that many processes."""
     if split not in SPLITS:
         raise DatasetError(f"--split {split!r}: allowed: {', '.join(SPLITS)}")
     if frames < 1:
         raise DatasetError(f"--frames {frames}: must be >= 1")
+    if jobs < 1:
+        raise DatasetError(f"--jobs {jobs}: must be >= 1")
     out.mkdir(parents=True, exist_ok=True)
     base = load_scenario(scenario_path, overrides)
     doc = read_manifest(out) if (out / "manifest.json").exists() else {
@@ -114,38 +240,57 @@ def record_dataset(scenario_path: str, seeds: list[int], frames: int, out: Path,
     todo = [s for s in seeds if (base.name, s) not in done]
     total = len(todo) * frames
     t0, n = time.monotonic(), 0
-    for seed in todo:
-        sc = load_scenario(scenario_path, (*overrides, f"seed={seed}"))
-        run_dir = out / run_name(sc.name, seed)
-        run_dir.mkdir(parents=True, exist_ok=True)
-        recorded = 0
-        with make_backend(sc) as backend:
-            world = backend.reset()
-            assets = build_map_assets(backend.static)
-            for k in range(frames):
-                if k > 0:
-                    world = backend.step()
-                if not world.cavs:
-                    break
-                arrays = record_frame(world, sc, assets, cameras)
-                tmp = run_dir / f".f{k:05d}.tmp.npz"
-                np.savez_compressed(tmp, **arrays)
-                tmp.replace(frame_path(run_dir, k))
-                recorded += 1
-                n += 1
-                el = time.monotonic() - t0
-                rate = n / el if el > 0 else 0.0
-                eta = (total - n) / rate if rate > 0 else 0.0
-                print(f"\rdataset {sc.name} seed {seed}: frame {k + 1}/{frames}  {n}/{total} frames  "
-                      f"{rate:.1f} frames/s  ETA {eta:.0f} s   ", end="", file=log, flush=True)
-        (run_dir / "run.json").write_text(json.dumps({
-            "scenario": sc.name, "source": str(sc.source), "seed": seed, "frames": recorded,
-            "cavs": [f"cav{i}" for i in range(sc.cavs.count)], "bev": {"size_m": sc.bev.size_m, "cells": sc.bev.cells},
-            "range_m": sc.comm.range_m, "rate_hz": sc.rate_hz, "lidar_height_m": sc.sensors.lidar.height_m,
-            "modality": sc.perception.modality, "cameras": cameras, "overrides": list(sc.overrides)}, indent=1))
-        entry = RunEntry(run_dir.name, sc.name, str(sc.source), seed, split, recorded, sc.cavs.count,
-                         sc.traffic.background_per_hour, tuple(overrides))
+
+    def show(what: str) -> None:
+        el = time.monotonic() - t0
+        rate = n / el if el > 0 else 0.0
+        eta = (total - n) / rate if rate > 0 else 0.0
+        print(f"\rdataset {base.name} {what}  {n}/{total} frames  {rate:.1f} frames/s  ETA {eta:.0f} s   ",
+              end="", file=log, flush=True)
+
+    def finished(seed: int, recorded: int) -> None:
+        if traffic_only:
+            return
+        name = run_name(base.name, seed)
+        entry = RunEntry(name, base.name, str(base.source), seed, split, recorded, base.cavs.count,
+                         load_scenario(scenario_path, (*overrides, f"seed={seed}")).traffic.background_per_hour,
+                         tuple(overrides))
         doc["runs"].append(entry.to_json())
         _write_manifest(out, doc)
+
+    if jobs == 1:
+        for seed in todo:
+            def tick(k: int, seed: int = seed) -> None:
+                nonlocal n
+                n += 1
+                show(f"seed {seed}: frame {k + 1}/{frames}")
+
+            recorded = record_run(scenario_path, seed, frames, out, overrides, cameras, traffic_only,
+                                  progress=tick)
+            if traffic_only:
+                n += frames
+                show(f"seed {seed}: traffic")
+            finished(seed, recorded)
+    else:
+        ctx = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(jobs, mp_context=ctx) as pool:
+            # traffic first (one process per seed), then the frames of every seed in chunks across the pool
+            lengths = dict(pool.map(_traffic_job, [(scenario_path, s, frames, out, overrides) for s in todo]))
+            if traffic_only:
+                n = total
+                show("traffic")
+            else:
+                total = sum(lengths.values())
+                jobs_ = [(scenario_path, s, frames, out, overrides, cameras, lo, lo + SENSE_CHUNK)
+                         for s in todo for lo in range(0, lengths[s], SENSE_CHUNK)]
+                for fut in as_completed([pool.submit(_sense_job, j) for j in jobs_]):
+                    seed, done_frames = fut.result()
+                    n += done_frames
+                    show(f"seed {seed} chunk done")
+        for seed in todo:  # manifest in seed order, whatever order the workers finished in
+            if not traffic_only:
+                sc = load_scenario(scenario_path, (*overrides, f"seed={seed}"))
+                _write_run_json(sc, out / run_name(sc.name, seed), lengths[seed], cameras)
+            finished(seed, lengths[seed])
     print(file=log)
     return out

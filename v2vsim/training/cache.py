@@ -55,6 +55,7 @@ def build_feature_cache(encoder: nn.Module, store: FrameStore, splits: tuple[str
         data = np.memmap(data_path, dtype=np.float16, mode="r+", shape=shape)
     start = int(done_path.read_text() or 0)
     encoder.eval()
+    dev = next(encoder.parameters()).device
     t0 = time.monotonic()
     batch = 8
     opened: tuple = (None, None)
@@ -70,12 +71,12 @@ def build_feature_cache(encoder: nn.Module, store: FrameStore, splits: tuple[str
                                torch.from_numpy(f[f"intrinsics_{cav}"].astype(np.float32)),
                                torch.from_numpy(f[f"extrinsics_{cav}"].astype(np.float32))))
             else:
-                inputs.append(torch.from_numpy(f[f"points_{cav}"].astype(np.float32)))
+                inputs.append(torch.from_numpy(f[f"points_{cav}"].astype(np.float32)).to(dev))
         if camera:  # [b, M, 3, h, w], [b, M, 3, 3], [b, M, 4, 4]
-            feats = encoder(*(torch.stack([x[i] for x in inputs]) for i in range(3)))
+            feats = encoder(*(torch.stack([x[i] for x in inputs]).to(dev) for i in range(3)))
         else:
             feats = encoder(inputs)  # [b, C, F, F]
-        data[i:i + len(chunk)] = feats.numpy().astype(np.float16)
+        data[i:i + len(chunk)] = feats.float().cpu().numpy().astype(np.float16)
         n = i + len(chunk)
         if (n // batch) % 25 == 0 or n == len(keys):
             data.flush()

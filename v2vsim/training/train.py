@@ -106,6 +106,8 @@ class TrainArgs:
     threads: int = 2
     seed: int = 0
     resume: bool = False
+    val_every: int = 1  # validate every N epochs and after the last
+    workers: int = 0  # DataLoader processes (0: load in the training process)
     overrides: tuple[tuple[str, object], ...] = ()  # StageSpec fields from flags
     command: str = ""
 
@@ -235,12 +237,17 @@ class Progress:
 
 def validate(spec: StageSpec, model: nn.Module, single: nn.Module, ds: CooperativeDataset,
              cache: FeatureCache | None, n: int) -> dict[str, dict]:
-    """Metrics of the stage's methods on `n` validation samples (spread over the split)."""
-    model.eval()
-    single.eval()
+    """Metrics of the stage's methods on `n` validation samples (spread over the split), on the CPU: the
+    run's own prediction path (numpy in, numpy out). The models are moved back to their device after."""
+    dev = next(model.parameters()).device
+    model.cpu().eval()
+    single.cpu().eval()
     models = {m: model for m in spec.methods} if spec.methods else {"none": model, "late": model}
     idx = np.linspace(0, len(ds) - 1, min(n, len(ds))).round().astype(int)
-    return evaluate_samples(models, single, ds, [int(i) for i in idx], cache)
+    try:
+        return evaluate_samples(models, single, ds, [int(i) for i in idx], cache)
+    finally:
+        model.to(dev)
 
 
 @torch.no_grad()
@@ -293,8 +300,8 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
     if args.stage == "cache":
         single = build_stage_model(args, SPECS["none"])  # the single-agent encoder
         store = CooperativeDataset(args.data, "train").store
-        build_feature_cache(single.encoder, store, ("train", "val"), args.work / "cache", stride=CACHE_STRIDE,
-                            log=log, camera=camera)
+        build_feature_cache(single.encoder.to(dev), store, ("train", "val"), args.work / "cache",
+                            stride=CACHE_STRIDE, log=log, camera=camera)
         return {}
     spec = dataclasses.replace(SPECS[args.stage], **dict(args.overrides))
     if camera and spec.distill_weight > 0:  # DiscoNet's teacher is early fusion: LiDAR only
@@ -356,8 +363,7 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
         perm = np.random.default_rng([args.seed, epoch]).permutation(len(train))
         perm = np.resize(perm, steps_per_epoch * spec.batch)
         running: dict[str, float] = {}
-        for s in range(step, steps_per_epoch):
-            batch = collate([train[int(j)] for j in perm[s * spec.batch:(s + 1) * spec.batch]])
+        for s, batch in enumerate(batches(train, perm, spec.batch, step, steps_per_epoch, args.workers), start=step):
             out = forward(model, spec, batch, cache, dev)
             losses = perception_loss(out, batch, spec.target, assigner, spec.lane_weight)
             if teacher is not None:
@@ -377,11 +383,14 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
             if time.monotonic() - last_save > CHECKPOINT_EVERY_S:
                 save(epoch, s + 1)
                 last_save = time.monotonic()
-        metrics = validate(spec, model, single, val, cache, spec.val_samples)
-        history.append({"epoch": epoch + 1, "loss": running, "validation": metrics})
-        summary = ", ".join(f"{m}: IoU veh {v['iou_vehicle']} road {v['iou_road']} lane {v['iou_lane']} "
-                            f"AP50 {v['ap50']} AP70 {v['ap70']}" for m, v in metrics.items())
-        print(f"[{spec.name}] epoch {epoch + 1}/{spec.epochs} validation: {summary}", file=log, flush=True)
+        if (epoch + 1) % max(args.val_every, 1) == 0 or epoch + 1 == spec.epochs:
+            metrics = validate(spec, model, single, val, cache, spec.val_samples)
+            history.append({"epoch": epoch + 1, "loss": running, "validation": metrics})
+            summary = ", ".join(f"{m}: IoU veh {v['iou_vehicle']} road {v['iou_road']} lane {v['iou_lane']} "
+                                f"AP50 {v['ap50']} AP70 {v['ap70']}" for m, v in metrics.items())
+            print(f"[{spec.name}] epoch {epoch + 1}/{spec.epochs} validation: {summary}", file=log, flush=True)
+        else:
+            history.append({"epoch": epoch + 1, "loss": running, "validation": None})
         epoch, step = epoch + 1, 0
         save(epoch, 0)
         last_save = time.monotonic()
@@ -391,6 +400,16 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
     torch.save({"state_dict": final, "spec": dataclasses.asdict(spec)}, final_path)
     export(args, spec, final, history, wall_total, train.store.manifest)
     return history[-1]["validation"] if history else {}
+
+
+def batches(ds: CooperativeDataset, perm: np.ndarray, batch: int, first: int, steps: int, workers: int):
+    """The collated batches `first`..`steps`-1 of an epoch's permutation, loaded in `workers` processes
+    (0: here). Workers copy `ds` when the epoch starts, so they see its current `epoch` (delay draws)."""
+    chunks = [[int(j) for j in perm[s * batch:(s + 1) * batch]] for s in range(first, steps)]
+    if workers <= 0:
+        return (collate([ds[j] for j in c]) for c in chunks)
+    return iter(torch.utils.data.DataLoader(ds, batch_sampler=chunks, collate_fn=collate, num_workers=workers,
+                                            prefetch_factor=4, persistent_workers=False))
 
 
 def export(args: TrainArgs, spec: StageSpec, state: dict, history: list, wall_s: float, manifest: dict) -> Path:
