@@ -84,8 +84,10 @@ def test_neighbour_shares_sum_to_one_and_cover_every_count() -> None:
     assert sum(thirds.values()) == pytest.approx(1.0, abs=1e-3)
 
 
-def _summary(ap_sort: str | None = None) -> RunSummary:
+def _summary(ap_sort: str | None = None, modality: str = "lidar") -> RunSummary:
     raw = {"traffic": {"backend": "highway-env"}, "cavs": {"count": 4}}
+    if modality == "camera":
+        raw["perception"] = {"modality": "camera", "encoder": "sinbevt"}
     if ap_sort is not None:
         raw["evaluation"] = {"ap_sort": ap_sort}
     sc = scenario_from_dict(raw)
@@ -150,3 +152,16 @@ def test_report_and_plot_of_link_states_under_tr37885(tmp_path) -> None:
     assert (tmp_path / "delivery_by_distance.png") in plot(tmp_path, doc, scores)
     plain = metrics_json(summary, scores, CommStats(), {}, None)
     assert "los" not in plain["comm"] and "link state" not in report_md(plain, summary)
+
+
+def test_camera_report_puts_the_run_beside_the_papers_camera_table() -> None:
+    summary = _summary(modality="camera")
+    doc = metrics_json(summary, {"none": MethodScore(boxes=_two_frames("global"))}, CommStats(), {}, _centre_iou)
+    doc["methods"]["none"].update(iou_vehicle=0.25, iou_road=0.5, iou_lane=0.125)
+    md = report_md(doc, summary)
+    assert "Beside the CoBEVT paper's camera table" in md and "different dataset" in md
+    assert "| none | 25.0 / 50.0 / 12.5 | 37.7 / 57.8 / 43.7 |" in md
+    assert "| cobevt | - | 60.4 / 63.0 / 53.0 |" in md  # a paper row this run did not have
+    assert "LiDAR AP@0.7" not in md
+    lidar = _summary()
+    assert "LiDAR AP@0.7" in report_md(metrics_json(lidar, {}, CommStats(), {}, None), lidar)

@@ -105,3 +105,46 @@ def test_select_agents_within_range_nearest_kept() -> None:
     poses = np.array([[0, 0, 0, 0], [50, 0, 0, 0], [10, 0, 0, 0], [80, 0, 0, 0]], dtype=float)
     assert select_agents(["a", "b", "c", "d"], poses, "a", 70.0, 5) == ["a", "b", "c"]
     assert select_agents(["a", "b", "c", "d"], poses, "a", 70.0, 2) == ["a", "c"]
+
+
+def test_traffic_recorded_then_sensed_in_workers_gives_the_same_frames(tiny_dataset, tmp_path, monkeypatch) -> None:
+    """--traffic-only then --jobs 2 (the simulator made unavailable in between) writes the frames, run.json
+    and manifest entry a plain recording of the same seed wrote."""
+    import v2vsim.data.record as record
+
+    out = tmp_path / "ds"
+    record_dataset("scenarios/intersection.yaml", [700], 4, out, traffic_only=True, log=io.StringIO())
+    assert not (out / "manifest.json").exists() or not json.loads((out / "manifest.json").read_text())["runs"]
+    assert (out / "intersection_s700" / "traffic" / "worlds.jsonl.gz").is_file()
+
+    def no_simulator(sc):
+        raise AssertionError("the traffic backend ran although the traffic was recorded")
+
+    monkeypatch.setattr(record, "make_backend", no_simulator)  # this process; the spawned workers load files
+    record_dataset("scenarios/intersection.yaml", [700], 4, out, jobs=2, log=io.StringIO())
+    for k in range(4):
+        with np.load(frame_path(tiny_dataset / "intersection_s700", k)) as a, \
+                np.load(frame_path(out / "intersection_s700", k)) as b:
+            assert set(a.files) == set(b.files)
+            for key in a.files:
+                assert np.array_equal(a[key], b[key]), (k, key)
+    assert (json.loads((out / "intersection_s700" / "run.json").read_text())
+            == json.loads((tiny_dataset / "intersection_s700" / "run.json").read_text()))
+    runs = json.loads((out / "manifest.json").read_text())["runs"]
+    assert runs == [r for r in json.loads((tiny_dataset / "manifest.json").read_text())["runs"]
+                    if r["name"] == "intersection_s700"]
+
+
+def test_traffic_for_another_request_is_simulated_again(tmp_path) -> None:
+    from v2vsim.data.record import load_traffic, record_traffic
+
+    sc = load_scenario("scenarios/intersection.yaml", ["seed=700"])
+    worlds = record_traffic(sc, 3, tmp_path)
+    back = load_traffic(tmp_path, 3, sc.overrides)  # the JSON round trip of every world state is exact
+    assert [(w.time, w.frame, w.actors) for w in back] == [(w.time, w.frame, w.actors) for w in worlds]
+    assert all(np.array_equal(a, b) for a, b in zip(back[0].static.roads, worlds[0].static.roads, strict=True))
+    assert load_traffic(tmp_path, 5, sc.overrides) is None
+    assert load_traffic(tmp_path, 3, (*sc.overrides, "traffic.background_per_hour=600")) is None
+    (tmp_path / "traffic" / "worlds.jsonl.gz").write_bytes(b"not gzip")
+    with pytest.raises(DatasetError, match="recorded traffic unreadable"):
+        load_traffic(tmp_path, 3, sc.overrides)

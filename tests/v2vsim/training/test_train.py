@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import io
 
+import numpy as np
 import pytest
 import torch
 
@@ -150,3 +151,19 @@ def test_camera_stages_chain_into_a_zoo_a_camera_run_loads(camera_dataset, tmp_p
     saved = torch.load(tmp_path / "zoo" / "sinbevt_tiny" / "cobevt.pt", weights_only=True)["state_dict"]
     got = models["cobevt"].fusion.state_dict()
     assert all(torch.equal(got[k[len("fusion."):]], v) for k, v in saved.items() if k.startswith("fusion."))
+
+
+def test_worker_processes_load_the_same_batches(tiny_dataset) -> None:
+    from v2vsim.training.train import batches
+
+    ds = CooperativeDataset(tiny_dataset, "train", max_agents=4, delays=(0, 1))
+    ds.epoch = 1
+    perm = np.random.default_rng(0).permutation(len(ds))
+    here = list(batches(ds, perm, 2, 1, 3, workers=0))
+    there = list(batches(ds, perm, 2, 1, 3, workers=2))
+    assert len(here) == len(there) == 2
+    for a, b in zip(here, there, strict=True):
+        assert a["key"] == b["key"] and a["agent_frames"] == b["agent_frames"]
+        assert torch.equal(a["rel_poses"], b["rel_poses"]) and torch.equal(a["vehicle"], b["vehicle"])
+        assert all(torch.equal(p, q) for ps, qs in zip(a["points"], b["points"], strict=True)
+                   for p, q in zip(ps, qs, strict=True))
