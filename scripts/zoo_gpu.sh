@@ -13,15 +13,15 @@ JOBS=${JOBS:-$(nproc)}
 WORKERS=${WORKERS:-10}
 # shellcheck disable=SC2086
 V2VSIM="$V" scripts/zoo_data.sh "$DATA" "$N" --jobs "$JOBS" $FLAGS
-# GPU recipe: ~5x the CPU recipe's samples per stage, batch 8 (README "Training on a GPU").
+# GPU recipe (README "Training on a GPU machine without SUMO"): more data and samples than the CPU recipe, batch 8.
 for stage in "$@"; do
   case $stage in
-    single) extra="--epochs 8 --samples-per-epoch 3000 --batch 8" ;;
+    single) extra="--epochs 8 --samples-per-epoch 3000 --batch 8 --val-every 2" ;;
     cache) extra="" ;;
-    early) extra="--epochs 6 --samples-per-epoch 2000 --batch 4" ;;
-    *) extra="--epochs 8 --samples-per-epoch 3000 --batch 8" ;;
+    early) extra="--epochs 3 --samples-per-epoch 1600 --batch 4 --val-every 3" ;;
+    *) extra="--epochs 4 --samples-per-epoch 2400 --batch 8 --val-every 4" ;;
   esac
   # shellcheck disable=SC2086
   $V train --data "$DATA" --stage "$stage" --encoder "$ENCODER" --out "$ZOO" --work "$WORK" --resume \
-    --device cuda --threads 8 --workers "$WORKERS" --val-every 2 $extra
+    --device cuda --threads 8 --workers "$WORKERS" $extra
 done
