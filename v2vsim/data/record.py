@@ -251,10 +251,9 @@ def record_dataset(scenario_path: str, seeds: list[int], frames: int, out: Path,
     def finished(seed: int, recorded: int) -> None:
         if traffic_only:
             return
-        name = run_name(base.name, seed)
-        entry = RunEntry(name, base.name, str(base.source), seed, split, recorded, base.cavs.count,
-                         load_scenario(scenario_path, (*overrides, f"seed={seed}")).traffic.background_per_hour,
-                         tuple(overrides))
+        # the seed does not change traffic density: the base scenario's is the run's
+        entry = RunEntry(run_name(base.name, seed), base.name, str(base.source), seed, split, recorded,
+                         base.cavs.count, base.traffic.background_per_hour, tuple(overrides))
         doc["runs"].append(entry.to_json())
         _write_manifest(out, doc)
 
