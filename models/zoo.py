@@ -70,12 +70,17 @@ def method_file(entry: dict, method: str, root: Path, encoder: str, preset: str)
     return None if name is None else root / zoo_name(encoder, preset) / name
 
 
+def rebuild_command(path: Path, entry: dict) -> str:
+    """How to rebuild the checkpoint `path` of a zoo entry: the whole zoo, or its stage alone."""
+    stage = (entry["files"].get(path.name) or {}).get("stage")
+    return REBUILD + (f" (this stage alone: v2vsim train --data DATA --stage {stage} --out {path.parent.parent}; "
+                      f"README 'Training')" if stage else " (README 'Training')")
+
+
 def load_checkpoint(path: Path, entry: dict) -> dict:
     """A verified checkpoint's state_dict; ZooError naming the file and the rebuild command otherwise."""
     info = entry["files"].get(path.name)
-    stage = (info or {}).get("stage")
-    command = REBUILD + (f" (this stage alone: v2vsim train --data DATA --stage {stage} --out {path.parent.parent}; "
-                         f"README 'Training')" if stage else " (README 'Training')")
+    command = rebuild_command(path, entry)
     if not path.is_file():
         raise ZooError(f"{path}: checkpoint missing; rebuild it with: {command}")
     if info is None:

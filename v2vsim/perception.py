@@ -88,19 +88,31 @@ def _seed(sc: Scenario, what: str) -> None:
     torch.manual_seed(sc.seed * 1_000_003 + zlib.crc32(what.encode()))
 
 
-def _load(module: nn.Module, state: dict | None, prefix: str) -> None:
+def _load(module: nn.Module, state: dict | None, prefix: str, sc: Scenario, method: str) -> None:
+    """Load the `prefix` part of `method`'s checkpoint state into `module`; ConfigError naming the file and
+    its rebuild command when it was made for another version of the model (missing, unknown or resized
+    weights)."""
     if state is None:
         return
     sub = {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}
-    if sub:
+    if not sub:
+        return
+    try:
         module.load_state_dict(sub)
+    except RuntimeError as e:
+        root, entry = zoo_for(sc)  # type: ignore[misc]  # a state was loaded, so there is a zoo
+        path = zoo.method_file(entry, method, root, sc.perception.encoder, sc.perception.preset)
+        reason = " ".join(str(e).split())
+        raise ConfigError(f"{path}: the {method} checkpoint's {prefix.rstrip('.')} weights do not fit this "
+                          f"version of the model ({reason[:300]}); rebuild it with: "
+                          f"{zoo.rebuild_command(path, entry)}") from None
 
 
 def build_agent_encoder(sc: Scenario) -> nn.Module:
     """The encoder every CAV runs; identical in every process for a given scenario."""
     _seed(sc, "encoder")
     enc = build_encoder(sc.perception.encoder, sc.perception.preset, bev_size_m=sc.bev.size_m)
-    _load(enc, _states(sc, ("encoder",))["encoder"], "encoder.")
+    _load(enc, _states(sc, ("encoder",))["encoder"], "encoder.", sc, "encoder")
     return enc.eval()
 
 
@@ -119,7 +131,10 @@ def check_scenario(sc: Scenario) -> None:
     if not runnable_methods(sc):
         raise ConfigError(f"{sc.source}: perception.methods: nothing to run for modality "
                           f"{sc.perception.modality!r} (early fusion needs LiDAR)")
-    _states(sc, ("encoder", *runnable_methods(sc)))  # every checkpoint a process loads, verified before any starts
+    # every checkpoint a process loads is verified (sha256, and that it fits its model) before any starts
+    _states(sc, ("encoder", *runnable_methods(sc)))
+    if zoo_for(sc) is not None:
+        build_method_models(sc, build_agent_encoder(sc), runnable_methods(sc))  # ~0.3 s for the tiny zoo
 
 
 def build_compressor(sc: Scenario, channels: int) -> ChannelCompressor | None:
@@ -154,11 +169,11 @@ def build_method_models(sc: Scenario, encoder: nn.Module, methods: tuple[str, ..
         model = build_cooperative(sc.perception.encoder, m, sc.perception.preset, bev_size_m=sc.bev.size_m)
         state = states[m]
         if m == "early":  # early fusion's encoder runs at the ego on merged clouds: its own weights
-            _load(model.encoder, state, "encoder.")
+            _load(model.encoder, state, "encoder.", sc, m)
         else:
             model.encoder = encoder
-        _load(model.fusion, state, "fusion.")
-        _load(model.heads, state, "heads.")
+        _load(model.fusion, state, "fusion.", sc, m)
+        _load(model.heads, state, "heads.", sc, m)
         model.heads.for_inference()
         out[m] = model.eval()
     return out

@@ -117,3 +117,12 @@ def test_masked_path_equals_dropped_slots_path() -> None:
         for i in range(2):
             alone = m(x[i : i + 1], valid[i : i + 1])
             torch.testing.assert_close(both[i : i + 1], alone, atol=1e-5, rtol=1e-5)
+
+
+def test_head_starts_as_the_identity_and_learns() -> None:
+    # the zoo fine-tunes heads pretrained on the encoder's raw features: FuseBEVT must hand them that space
+    m = FuseBEVT(16, heads=2, window=4)
+    x = torch.randn(2, 5, 6, 16)  # [B, H, W, C] agent-reduced map
+    assert torch.equal(m.head(x), x.permute(0, 3, 1, 2))
+    m.head(x).square().sum().backward()
+    assert m.head.update.weight.grad.abs().sum() > 0  # zero-initialised, not frozen

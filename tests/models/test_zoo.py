@@ -8,6 +8,7 @@ import subprocess
 import sys
 
 import pytest
+import torch
 
 from models import zoo
 from models.registry import METHODS
@@ -38,7 +39,7 @@ def _broken_zoo(tmp_path, how: str):
     target = root / "pointpillars_tiny" / "cobevt.pt"
     if how == "missing":
         target.unlink()
-    else:
+    elif how == "corrupted":
         data = bytearray(target.read_bytes())
         data[len(data) // 2] ^= 0xFF
         target.write_bytes(bytes(data))
@@ -53,6 +54,21 @@ def test_broken_checkpoint_is_a_clear_error(tmp_path, how: str) -> None:
         check_scenario(sc)
     assert str(target) in str(e.value)
     assert ("sha256" in str(e.value)) == (how == "corrupted")
+
+
+def test_checkpoint_of_another_model_version_is_a_clear_error(tmp_path) -> None:
+    # a checkpoint whose sha256 is right but whose weights were made for another version of the model (here:
+    # FuseBEVT's head before it became residual, `head.update` was `head.proj`) fails before any process starts
+    root, target = _broken_zoo(tmp_path, "none")
+    ckpt = torch.load(target, map_location="cpu", weights_only=True)
+    ckpt["state_dict"] = {k.replace("head.update", "head.proj"): v for k, v in ckpt["state_dict"].items()}
+    torch.save(ckpt, target)
+    doc = zoo.read_manifest(root)
+    doc["zoos"]["pointpillars_tiny"]["files"]["cobevt.pt"]["sha256"] = zoo.sha256(target)
+    zoo.write_manifest(doc, root)
+    sc = load_scenario("scenarios/intersection.yaml", [f"perception.weights={root}"])
+    with pytest.raises(ConfigError, match=r"do not fit this version of the model .*head\.update.*--stage cobevt"):
+        check_scenario(sc)
 
 
 def test_run_with_a_corrupted_checkpoint_exits_2(tmp_path) -> None:
