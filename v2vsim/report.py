@@ -153,9 +153,7 @@ def _reference_md() -> list[str]:
     lines = ["", "## Reference (CoBEVT paper, OPV2V; real data, trained models)", "",
              "| method | camera IoU vehicle / road / lane | LiDAR AP@0.7 |", "|---|---|---|"]
     for m in ("none", "late", "early", "attfuse", "fcooper", "v2vnet", "disconet", "cobevt"):
-        cam = PAPER_CAMERA.get(m)
-        lines.append(f"| {m} | {' / '.join(f'{v:.1f}' for v in cam) if cam else '-'} | "
-                     f"{PAPER_LIDAR_AP70.get(m, '-')} |")
+        lines.append(f"| {m} | {_paper_camera(m)} | {PAPER_LIDAR_AP70.get(m, '-')} |")
     return lines
 
 
@@ -170,9 +168,14 @@ def _camera_beside_paper_md(doc: dict) -> list[str]:
     for m in [*doc["methods"], *(m for m in PAPER_CAMERA if m not in doc["methods"])]:
         r = doc["methods"].get(m)
         ours = " / ".join(_fmt(r[k], True) for k in ("iou_vehicle", "iou_road", "iou_lane")) if r else "-"
-        cam = PAPER_CAMERA.get(m)
-        lines.append(f"| {m} | {ours} | {' / '.join(f'{v:.1f}' for v in cam) if cam else '-'} |")
+        lines.append(f"| {m} | {ours} | {_paper_camera(m)} |")
     return lines
+
+
+def _paper_camera(method: str) -> str:
+    """The paper's camera IoU vehicle / road / lane of `method`, "-" where it has none."""
+    cam = PAPER_CAMERA.get(method)
+    return " / ".join(f"{v:.1f}" for v in cam) if cam else "-"
 
 
 def _link_states_md(doc: dict, summary: RunSummary) -> list[str]:
