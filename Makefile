@@ -2,7 +2,7 @@
 PYTHON ?= python3
 PIP = $(PYTHON) -m pip install --disable-pip-version-check -q
 
-.PHONY: install demo test lint bench zoo
+.PHONY: install demo test lint bench zoo zoo-camera
 
 install:
 	$(PIP) torch==2.13.0
@@ -23,3 +23,8 @@ bench: install
 # Rebuild the LiDAR model zoo from scratch: dataset (data/lidar) + every training stage (README "Training").
 zoo: install
 	scripts/lidar_zoo.sh data/lidar runs/train
+
+# Rebuild the camera model zoo from scratch: dataset with cameras (data/camera), every SinBEVT stage, LaRa's
+# none + cobevt (README "Training").
+zoo-camera: install
+	scripts/camera_zoo.sh data/camera runs/train_camera

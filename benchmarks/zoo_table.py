@@ -2,7 +2,7 @@
 
     python benchmarks/zoo_table.py RUN_DIR [RUN_DIR ...]
 
-Each RUN_DIR holds a metrics.json. Prints, per (scenario, channel), one row per method with
+Each RUN_DIR holds a metrics.json. Prints, per (scenario, camera encoder, channel), one row per method with
 visible-vehicle IoU, all-vehicle IoU, road, lane, AP@0.5, AP@0.7 and bytes/frame, averaged over
 the runs (seeds) given, and the number of runs.
 """
@@ -18,13 +18,14 @@ KEYS = ("iou_vehicle", "iou_vehicle_all", "iou_road", "iou_lane", "ap50", "ap70"
 
 
 def main(dirs: list[str]) -> None:
-    groups: dict[tuple[str, str], list[dict]] = defaultdict(list)
+    groups: dict[tuple[str, str, str], list[dict]] = defaultdict(list)
     for d in dirs:
         doc = json.loads((Path(d) / "metrics.json").read_text())
         channel = "ideal" if "ideal" in Path(d).name else "default"
-        groups[(doc["scenario"], channel)].append(doc)
-    for (scenario, channel), docs in sorted(groups.items()):
-        print(f"\n### {scenario}, {channel} channel ({len(docs)} run(s), {docs[0]['frames']} frames each)\n")
+        encoder = "" if doc.get("modality", "lidar") == "lidar" else f" ({doc['encoder']})"
+        groups[(doc["scenario"], encoder, channel)].append(doc)
+    for (scenario, encoder, channel), docs in sorted(groups.items()):
+        print(f"\n### {scenario}{encoder}, {channel} channel ({len(docs)} run(s), {docs[0]['frames']} frames each)\n")
         print("| method | IoU veh (visible) | IoU veh (all) | road | lane | AP@0.5 | AP@0.7 | bytes/frame |")
         print("|---|---|---|---|---|---|---|---|")
         for m in docs[0]["methods"]:

@@ -23,7 +23,9 @@ import torch
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 MANIFEST = "manifest.json"
-REBUILD = "make zoo"
+REBUILD = "make zoo (LiDAR) or make zoo-camera (SinBEVT, LaRa)"
+# The command that rebuilds one encoder's whole zoo from scratch (Makefile).
+REBUILD_ZOO = {"pointpillars": "make zoo", "sinbevt": "make zoo-camera", "lara": "make zoo-camera"}
 
 
 class ZooError(Exception):
@@ -73,8 +75,11 @@ def method_file(entry: dict, method: str, root: Path, encoder: str, preset: str)
 def rebuild_command(path: Path, entry: dict) -> str:
     """How to rebuild the checkpoint `path` of a zoo entry: the whole zoo, or its stage alone."""
     stage = (entry["files"].get(path.name) or {}).get("stage")
-    return REBUILD + (f" (this stage alone: v2vsim train --data DATA --stage {stage} --out {path.parent.parent}; "
-                      f"README 'Training')" if stage else " (README 'Training')")
+    encoder = path.parent.name.rsplit("_", 1)[0]  # the zoo's folder is <encoder>_<preset>
+    whole = REBUILD_ZOO.get(encoder, REBUILD)
+    flag = "" if encoder == "pointpillars" else f" --encoder {encoder}"
+    return whole + (f" (this stage alone: v2vsim train --data DATA{flag} --stage {stage} --out {path.parent.parent}; "
+                    f"README 'Training')" if stage else " (README 'Training')")
 
 
 def load_checkpoint(path: Path, entry: dict) -> dict:

@@ -1,0 +1,20 @@
+#!/usr/bin/env bash
+# Rebuild the camera model zoo from scratch (README "Training", camera track): record the dataset with
+# cameras, then train every SinBEVT stage and LaRa's `none` and `cobevt` into models/weights/. Each step
+# resumes where it stopped if re-run.
+#   scripts/camera_zoo.sh [DATA_DIR] [WORK_DIR] [ZOO_DIR]
+set -euo pipefail
+cd "$(dirname "$0")/.."
+DATA=${1:-data/camera}
+WORK=${2:-runs/train_camera}
+ZOO=${3:-models/weights}
+V=${V2VSIM:-v2vsim}
+# "visible" means seen by a camera: the dataset's visibility masks follow the cameras, not the LiDAR.
+scripts/zoo_data.sh "$DATA" 10 --cameras --set perception.modality=camera --set perception.encoder=sinbevt
+# A camera zoo has no `early` stage (early fusion ships LiDAR points); DiscoNet trains without its teacher.
+for stage in single cache none cobevt v2vnet attfuse fcooper disconet; do
+  $V train --data "$DATA" --encoder sinbevt --stage $stage --out "$ZOO" --work "$WORK/sinbevt" --resume
+done
+for stage in single cache none cobevt; do
+  $V train --data "$DATA" --encoder lara --stage $stage --out "$ZOO" --work "$WORK/lara" --resume
+done
