@@ -144,8 +144,9 @@ def report_md(doc: dict, summary: RunSummary) -> str:
               *_neighbours_md(doc, summary),
               *(_camera_beside_paper_md(doc) if sc.perception.modality == "camera" else _reference_md())]
     pngs = ["iou_by_method.png", "iou_per_frame.png"] + (["delivery_by_distance.png"] if "los" in c else [])
-    lines += ["", f"Plots: {', '.join(f'`{p}`' for p in pngs)}. Recording: `recording.rrd` "
-              "(open with `v2vsim view` on this directory).", ""]
+    recording = (" Recording: `recording.rrd` (open with `v2vsim view` on this directory)." if sc.output.rerun
+                 else " No recording (`output.rerun: false`).")
+    lines += ["", f"Plots: {', '.join(f'`{p}`' for p in pngs)}.{recording}", ""]
     return "\n".join(lines)
 
 

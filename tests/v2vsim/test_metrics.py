@@ -84,8 +84,8 @@ def test_neighbour_shares_sum_to_one_and_cover_every_count() -> None:
     assert sum(thirds.values()) == pytest.approx(1.0, abs=1e-3)
 
 
-def _summary(ap_sort: str | None = None, modality: str = "lidar") -> RunSummary:
-    raw = {"traffic": {"backend": "highway-env"}, "cavs": {"count": 4}}
+def _summary(ap_sort: str | None = None, modality: str = "lidar", rerun: bool = True) -> RunSummary:
+    raw = {"traffic": {"backend": "highway-env"}, "cavs": {"count": 4}, "output": {"rerun": rerun}}
     if modality == "camera":
         raw["perception"] = {"modality": "camera", "encoder": "sinbevt"}
     if ap_sort is not None:
@@ -97,7 +97,7 @@ def _summary(ap_sort: str | None = None, modality: str = "lidar") -> RunSummary:
 
 def test_metrics_json_and_report_carry_neighbour_shares_and_ap_sort() -> None:
     scores = {"none": MethodScore(boxes=_two_frames("per_frame"))}
-    summary = _summary("per_frame")
+    summary = _summary("per_frame", rerun=False)
     doc = metrics_json(summary, scores, CommStats(), {}, _centre_iou)
     assert doc["neighbours_in_range"] == {"0": 0.25, "1": 0.0, "2": 0.25, "3": 0.5}
     assert sum(doc["neighbours_in_range"].values()) == pytest.approx(1.0)
@@ -109,7 +109,10 @@ def test_metrics_json_and_report_carry_neighbour_shares_and_ap_sort() -> None:
     assert "at least two in 75.0 %" in md
     default = _summary()
     assert default.scenario.evaluation.ap_sort == "global"
-    assert "sorted over the whole run" in report_md(metrics_json(default, {}, CommStats(), {}, None), default)
+    default_md = report_md(metrics_json(default, {}, CommStats(), {}, None), default)
+    assert "sorted over the whole run" in default_md
+    # the report points at the recording only where the run wrote one
+    assert "Recording: `recording.rrd`" in default_md and "No recording" in md
 
 
 def test_ap_sort_is_checked_in_the_scenario() -> None:
