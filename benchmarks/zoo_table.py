@@ -15,6 +15,7 @@ from collections import defaultdict
 from pathlib import Path
 
 KEYS = ("iou_vehicle", "iou_vehicle_all", "iou_road", "iou_lane", "ap50", "ap70", "bytes_per_frame")
+HEADERS = ("IoU veh (visible)", "IoU veh (all)", "road", "lane", "AP@0.5", "AP@0.7", "bytes/frame")
 
 
 def main(dirs: list[str]) -> None:
@@ -26,17 +27,25 @@ def main(dirs: list[str]) -> None:
         groups[(doc["scenario"], encoder, channel)].append(doc)
     for (scenario, encoder, channel), docs in sorted(groups.items()):
         print(f"\n### {scenario}{encoder}, {channel} channel ({len(docs)} run(s), {docs[0]['frames']} frames each)\n")
-        print("| method | IoU veh (visible) | IoU veh (all) | road | lane | AP@0.5 | AP@0.7 | bytes/frame |")
-        print("|---|---|---|---|---|---|---|---|")
-        for m in docs[0]["methods"]:
-            vals = []
-            for k in KEYS:
-                xs = [doc["methods"][m][k] for doc in docs if doc["methods"].get(m, {}).get(k) is not None]
-                vals.append(None if not xs else sum(xs) / len(xs))
-            cells = [f"{v:.3f}" if v is not None and k != "bytes_per_frame" else
-                     (f"{v:,.0f}" if v is not None else "–") for k, v in zip(KEYS, vals, strict=True)]
+        rows = {m: [_mean(docs, m, k) for k in KEYS] for m in docs[0]["methods"]}
+        # the camera track has no detection head: AP columns that are empty for every method are left out
+        keep = [i for i, k in enumerate(KEYS) if not k.startswith("ap") or any(r[i] is not None for r in rows.values())]
+        print("| method | " + " | ".join(HEADERS[i] for i in keep) + " |")
+        print("|---|" + "---|" * len(keep))
+        for m, vals in rows.items():
+            cells = [_cell(KEYS[i], vals[i]) for i in keep]
             print(f"| {m} | " + " | ".join(cells) + " |")
 
+
+def _mean(docs: list[dict], method: str, key: str) -> float | None:
+    xs = [doc["methods"][method][key] for doc in docs if doc["methods"].get(method, {}).get(key) is not None]
+    return None if not xs else sum(xs) / len(xs)
+
+
+def _cell(key: str, v: float | None) -> str:
+    if v is None:
+        return "–"
+    return f"{v:,.0f}" if key == "bytes_per_frame" else f"{v:.3f}"
 
 if __name__ == "__main__":
     main(sys.argv[1:])
