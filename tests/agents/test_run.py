@@ -162,6 +162,23 @@ def _check_recording(rrd: Path, tmp_path: Path) -> None:
             assert any(c[:2] == pytest.approx([x, y], abs=1e-3) for c in recorded.values()), a["id"]
 
 
+def test_the_camera_scenario_runs_its_shipped_zoo(tmp_path: Path) -> None:
+    # scenarios/intersection_camera.yaml out of the box: four cameras per CAV, SinBEVT, the camera zoo's checkpoints
+    out = tmp_path / "cam"
+    r = subprocess.run([sys.executable, "-m", "v2vsim.cli", "run", str(REPO / "scenarios" / "intersection_camera.yaml"),
+                        "--frames", "2", "--out", str(out), "--set", "cavs.count=2", "--set", "comm.range_m=300",
+                        "--set", "output.rerun=false"], capture_output=True, text=True, timeout=300, cwd=REPO)
+    assert r.returncode == 0, r.stderr
+    m = _metrics(out)
+    assert m["modality"] == "camera" and m["encoder"] == "sinbevt" and m["comm"]["delivered"] == 2
+    assert list(m["methods"]) == ["none", "late", "attfuse", "fcooper", "v2vnet", "disconet", "cobevt"]
+    assert m["checkpoints"]["cobevt"] == "sinbevt_tiny/cobevt.pt" and None not in m["checkpoints"].values()
+    assert all(0.0 <= r["iou_road"] <= 1.0 for r in m["methods"].values())
+    report = (out / "report.md").read_text()
+    assert "Beside the CoBEVT paper's camera table" in report and "untrained" not in report
+    assert "No recording" in report and not (out / "recording.rrd").exists()
+
+
 def test_killed_cav_is_noticed_and_the_run_finishes(tmp_path: Path) -> None:
     out = tmp_path / "run"
     run = Run("--frames", "60", "--out", str(out), "--set", "cavs.count=3", "--methods", "none,cobevt")
