@@ -47,5 +47,6 @@ def _cell(key: str, v: float | None) -> str:
         return "–"
     return f"{v:,.0f}" if key == "bytes_per_frame" else f"{v:.3f}"
 
+
 if __name__ == "__main__":
     main(sys.argv[1:])

@@ -5,7 +5,7 @@
 
 Rows: samples (ego = first CAV, frames with the most neighbours in range); columns: the points of
 every agent in the ego frame (camera encoders: the ego's front camera), GT (visible vehicles white,
-unseen grey, road dark; camera: lane light), then per method
+unseen grey, road dark; camera: lane yellow), then per method
 - LiDAR: the vehicle probability (colour) with the error outline: TP green, FP red, FN blue;
 - camera: the predicted road (dark grey) and lane (yellow) under the same vehicle error colours, titled
   with the frame's vehicle / road / lane IoU.

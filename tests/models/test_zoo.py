@@ -93,3 +93,11 @@ def test_run_with_a_corrupted_checkpoint_exits_2(tmp_path) -> None:
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2, r.stderr
     assert str(target) in r.stderr and "Traceback" not in r.stderr
+
+
+def test_a_camera_checkpoint_names_the_camera_rebuild_command() -> None:
+    for encoder, whole in (("sinbevt", "make zoo-camera"), ("lara", "make zoo-camera"), ("pointpillars", "make zoo ")):
+        entry = zoo.zoo_entry(encoder, "tiny")
+        cmd = zoo.rebuild_command(zoo.WEIGHTS_DIR / f"{encoder}_tiny" / "cobevt.pt", entry)
+        assert cmd.startswith(whole) and "--stage cobevt" in cmd, cmd
+        assert ("--encoder" in cmd) == (encoder != "pointpillars"), cmd
