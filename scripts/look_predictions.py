@@ -63,10 +63,8 @@ def main() -> None:
             axes[r, 0].imshow(np.minimum(_points_bev(s), 4), cmap="gray")
         axes[r, 0].set_title(f"{s['key'].run} f{s['key'].frame}: {len(s['agents'])} agents")
         vis, dyn, road, lane = (s[k].numpy() for k in ("vehicle", "dynamic", "road", "lane"))
-        if camera:  # the predictions' palette: road dark grey, lane yellow, vehicles white (unseen: grey)
-            gt_img = np.zeros((256, 256, 3))
-            gt_img[road] = 0.3
-            gt_img[lane] = (0.9, 0.8, 0.1)
+        if camera:  # the predictions' palette, vehicles white (unseen: grey)
+            gt_img = _map_rgb(road, lane)
             gt_img[dyn & ~vis] = 0.6
             gt_img[vis] = 1.0
             axes[r, 1].imshow(gt_img)
@@ -77,11 +75,8 @@ def main() -> None:
             p = predict(m, models[m], inp, 256)
             v = p.probs["vehicle"]
             ax = axes[r, 2 + k]
-            if camera:  # predicted road dark grey, lane yellow, on black
-                bg = np.zeros((256, 256, 3))
-                bg[p.probs["road"] >= 0.5] = 0.3
-                bg[p.probs["lane"] >= 0.5] = (0.9, 0.8, 0.1)
-                ax.imshow(bg)
+            if camera:
+                ax.imshow(_map_rgb(p.probs["road"] >= 0.5, p.probs["lane"] >= 0.5))
             else:
                 ax.imshow(v, cmap="viridis", vmin=0, vmax=1)
             pred = v >= 0.5
@@ -91,8 +86,7 @@ def main() -> None:
             err[pred & ~dyn & care] = (1, 0, 0, 0.8)
             err[~pred & vis] = (0.2, 0.4, 1, 0.8)
             ax.imshow(err)
-            inter, union = (pred & vis & care).sum(), ((pred | vis) & care).sum()
-            title = f"{m}: IoU {inter / max(union, 1):.2f}"
+            title = f"{m}: IoU {_iou(pred & care, vis & care):.2f}"
             if camera:
                 title += "".join(f" / {_iou(p.probs[c] >= 0.5, gt):.2f}" for c, gt in (("road", road), ("lane", lane)))
             ax.set_title(title)
@@ -111,6 +105,14 @@ def _points_bev(s: dict) -> np.ndarray:
     ok = (rr >= 0) & (rr < 256) & (cc >= 0) & (cc < 256) & (merged[:, 2] > 0.3)
     img = np.zeros((256, 256))
     np.add.at(img, (rr[ok], cc[ok]), 1)
+    return img
+
+
+def _map_rgb(road: np.ndarray, lane: np.ndarray) -> np.ndarray:
+    """Road dark grey and lane yellow on black: the camera track's static classes."""
+    img = np.zeros((*road.shape, 3))
+    img[road] = 0.3
+    img[lane] = (0.9, 0.8, 0.1)
     return img
 
 
