@@ -95,7 +95,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from v2vsim.data.layout import DatasetError
     from v2vsim.training.train import TrainArgs, command_line, main_train
 
-    overrides = {k: getattr(args, k) for k in ("epochs", "samples_per_epoch", "batch", "lr", "val_samples")
+    overrides = {k: getattr(args, k) for k in ("epochs", "samples_per_epoch", "batch", "lr", "val_samples",
+                                               "yaw_jitter_deg")
                  if getattr(args, k) is not None}
     targs = TrainArgs(data=Path(args.data), stage=args.stage, out=Path(args.out), work=Path(args.work),
                       encoder=args.encoder, preset=args.preset,
@@ -257,6 +258,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lr", type=float, default=None, help="override the stage's default (peak, one-cycle)")
     p.add_argument("--val-samples", type=int, default=None, help="validation samples after each epoch")
     p.add_argument("--val-every", type=int, default=1, help="validate every N epochs (and after the last)")
+    p.add_argument("--yaw-jitter", dest="yaw_jitter_deg", type=float, default=None, metavar="DEG",
+                   help="camera `single` stage: turn each sample's agent frame by a uniform angle in [-DEG, DEG] "
+                   "(extrinsics and targets alike; default 0: off)")
     p.add_argument("--workers", type=int, default=0,
                    help="data-loading processes (default 0: in the training process; a GPU wants several)")
     p.set_defaults(func=_cmd_train)

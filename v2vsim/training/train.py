@@ -36,6 +36,7 @@ from torch import Tensor, nn
 from models import zoo
 from models.heads import AnchorTargetAssigner
 from models.losses import (
+    IGNORE_INDEX,
     dense_focal_loss,
     detection_loss,
     dynamic_target,
@@ -48,6 +49,7 @@ from v2vsim.data.torch_dataset import CooperativeDataset, collate, tensor_inputs
 from v2vsim.evaluate import box_iou, fuse_and_score
 from v2vsim.metrics import ApAccumulator, MethodScore
 from v2vsim.perception import FusionInputs, encode_points, late_outputs
+from v2vsim.training.augment import yaw_rotate_batch
 from v2vsim.training.cache import FeatureCache, build_feature_cache
 
 FUSION_STAGES = ("attfuse", "fcooper", "v2vnet", "cobevt", "disconet")
@@ -76,6 +78,8 @@ class StageSpec:
     # Cross-entropy weight of the lane class: markings are ~2 cells wide and rare; unweighted they never
     # reached p >= 0.5 in the single-agent stage (lane IoU 0), so every fine-tuning stage weights them.
     lane_weight: float = 3.0
+    # Camera `single` stage: turn each sample's agent frame by U(-d, d) degrees (v2vsim.training.augment).
+    yaw_jitter_deg: float = 0.0
 
 
 SPECS: dict[str, StageSpec] = {
@@ -122,10 +126,14 @@ def perception_loss(out: dict[str, Tensor], batch: dict, target: str, assigner: 
     dev = out["dynamic"].device
     vehicle = (batch["visible_self"] if target == "self" else batch["vehicle"]).to(dev)
     ignore = batch["dynamic"].to(dev) & ~vehicle
+    static = static_target(batch["road"].to(dev), batch["lane"].to(dev))
+    if "outside" in batch:  # cells a yaw-augmented sample turned in from outside the recording
+        outside = batch["outside"].to(dev)
+        ignore = ignore | outside
+        static = static.masked_fill(outside, IGNORE_INDEX)
     losses = {
         "dyn": dense_focal_loss(out["dynamic"], dynamic_target(vehicle, ignore)),
-        "static": segmentation_loss(out["static"], static_target(batch["road"].to(dev), batch["lane"].to(dev)),
-                                    torch.tensor([1.0, 1.0, lane_weight], device=dev)),
+        "static": segmentation_loss(out["static"], static, torch.tensor([1.0, 1.0, lane_weight], device=dev)),
     }
     if assigner is not None and "det_cls" in out:
         pos_key, hid_key = ("boxes_self", "boxes_self_hidden") if target == "self" else ("boxes", "boxes_hidden")
@@ -306,6 +314,9 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
     spec = dataclasses.replace(SPECS[args.stage], **dict(args.overrides))
     if camera and spec.distill_weight > 0:  # DiscoNet's teacher is early fusion: LiDAR only
         spec = dataclasses.replace(spec, distill_weight=0.0)
+    if spec.yaw_jitter_deg and not (camera and spec.inputs == "points" and spec.max_agents == 1):
+        raise ValueError(f"--yaw-jitter: turns one camera agent's frame; stage {spec.name!r} of {args.encoder} "
+                         "cannot use it (only a camera zoo's `single` stage)")
     cache = FeatureCache(args.work / "cache") if spec.inputs == "cache" else None
     raw = spec.inputs == "points" or spec.distill_weight > 0  # the encoder (or the teacher) runs on sensor data
     train = CooperativeDataset(args.data, "train", max_agents=spec.max_agents, delays=spec.delays, seed=args.seed,
@@ -364,6 +375,9 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
         perm = np.resize(perm, steps_per_epoch * spec.batch)
         running: dict[str, float] = {}
         for s, batch in enumerate(batches(train, perm, spec.batch, step, steps_per_epoch, args.workers), start=step):
+            if spec.yaw_jitter_deg:  # seeded per step, so a resumed run draws the same angles
+                u = torch.from_numpy(np.random.default_rng([args.seed, epoch, s]).uniform(-1, 1, len(batch["valid"])))
+                batch = yaw_rotate_batch(batch, torch.deg2rad(u * spec.yaw_jitter_deg), model.bev_size_m)
             out = forward(model, spec, batch, cache, dev)
             losses = perception_loss(out, batch, spec.target, assigner, spec.lane_weight)
             if teacher is not None:

@@ -139,9 +139,13 @@ def test_camera_stages_chain_into_a_zoo_a_camera_run_loads(camera_dataset, tmp_p
     assert "early" not in stages_for("all", "sinbevt") and "early" in stages_for("all", "pointpillars")
     log = io.StringIO()
     for stage in ("single", "cache", "cobevt"):
-        run_stage(dataclasses.replace(_args(camera_dataset, tmp_path, stage), encoder="sinbevt"), log=log)
+        jitter = {"yaw_jitter_deg": 20.0} if stage == "single" else {}  # the augmented single stage runs too
+        run_stage(dataclasses.replace(_args(camera_dataset, tmp_path, stage, **jitter), encoder="sinbevt"), log=log)
     with pytest.raises(ValueError, match="early fusion ships LiDAR points"):
         run_stage(dataclasses.replace(_args(camera_dataset, tmp_path, "early"), encoder="sinbevt"), log=log)
+    with pytest.raises(ValueError, match="only a camera zoo's `single` stage"):
+        run_stage(dataclasses.replace(_args(camera_dataset, tmp_path, "cobevt", yaw_jitter_deg=5.0),
+                                      encoder="sinbevt"), log=log)
     assert "validation: cobevt: IoU veh" in log.getvalue()
     entry = zoo.read_manifest(tmp_path / "zoo")["zoos"]["sinbevt_tiny"]
     assert entry["encoder"] == "single.pt" and entry["methods"]["cobevt"] == "cobevt.pt"
@@ -151,6 +155,11 @@ def test_camera_stages_chain_into_a_zoo_a_camera_run_loads(camera_dataset, tmp_p
     saved = torch.load(tmp_path / "zoo" / "sinbevt_tiny" / "cobevt.pt", weights_only=True)["state_dict"]
     got = models["cobevt"].fusion.state_dict()
     assert all(torch.equal(got[k[len("fusion."):]], v) for k, v in saved.items() if k.startswith("fusion."))
+
+
+def test_yaw_jitter_is_refused_for_lidar(tiny_dataset, tmp_path) -> None:
+    with pytest.raises(ValueError, match="only a camera zoo's `single` stage"):
+        run_stage(_args(tiny_dataset, tmp_path, "single", yaw_jitter_deg=10.0), log=io.StringIO())
 
 
 def test_worker_processes_load_the_same_batches(tiny_dataset) -> None:
