@@ -17,6 +17,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from models.warp import warp_to_ego
+
 MASKS = ("vehicle", "dynamic", "visible_self", "road", "lane")
 
 
@@ -29,21 +31,13 @@ def yaw_rotation(theta: Tensor) -> Tensor:
 
 
 def rotate_masks(masks: Tensor, theta: Tensor, size_m: float) -> tuple[Tensor, Tensor]:
-    """[B, F, F] masks turned by theta [B] -> (rotated masks [B, F, F], outside [B, F, F] bool).
+    """[B, K, F, F] masks turned by theta [B] -> (rotated masks [B, K, F, F], outside [B, F, F] bool).
 
-    Nearest cell: each output cell takes the cell its centre came from, R(-theta) p."""
-    b, f, _ = masks.shape
-    res = size_m / f
-    coord = size_m / 2 - (torch.arange(f, dtype=torch.float64) + 0.5) * res
-    x, y = torch.meshgrid(coord, coord, indexing="ij")  # [F, F] each: output cell centres
-    c, s = torch.cos(theta.double())[:, None, None], torch.sin(theta.double())[:, None, None]
-    xs, ys = c * x + s * y, -s * x + c * y  # R(-theta) p, [B, F, F]
-    rows = torch.floor((size_m / 2 - xs) / res).long()
-    cols = torch.floor((size_m / 2 - ys) / res).long()
-    outside = (rows < 0) | (rows >= f) | (cols < 0) | (cols >= f)
-    flat = rows.clamp(0, f - 1) * f + cols.clamp(0, f - 1)
-    out = masks.reshape(b, f * f).gather(1, flat.reshape(b, f * f)).reshape(b, f, f)
-    return out.masked_fill(outside, False) if out.dtype == torch.bool else out.masked_fill(outside, 0), outside
+    The turned frame is the ego grid of a "sender" at pose (0, 0, theta), so this is models.warp's
+    warp_to_ego with nearest sampling: each output cell takes the cell its centre came from."""
+    poses = torch.stack([torch.zeros_like(theta), torch.zeros_like(theta), theta], dim=-1).float()  # [B, 3]
+    warped, inside = warp_to_ego(masks.float(), poses, size_m, mode="nearest")
+    return warped > 0.5, ~inside
 
 
 def yaw_rotate_batch(batch: dict, theta: Tensor, size_m: float) -> dict:
@@ -57,8 +51,6 @@ def yaw_rotate_batch(batch: dict, theta: Tensor, size_m: float) -> dict:
     out = dict(batch)
     rot = yaw_rotation(theta.to(batch["extrinsics"].dtype))
     out["extrinsics"] = rot[:, None, None] @ batch["extrinsics"]
-    outside = None
-    for k in MASKS:
-        out[k], outside = rotate_masks(batch[k], theta, size_m)
-    out["outside"] = outside
+    turned, out["outside"] = rotate_masks(torch.stack([batch[k] for k in MASKS], dim=1), theta, size_m)
+    out.update(zip(MASKS, turned.unbind(1), strict=True))
     return out

@@ -5,36 +5,38 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
+from v2vsim.geometry import BevGrid
 from v2vsim.training.augment import rotate_masks, yaw_rotate_batch, yaw_rotation
 from v2vsim.training.train import perception_loss
 
 
 def _cell(x: float, y: float, size_m: float, f: int) -> tuple[int, int]:
-    res = size_m / f
-    return int(math.floor((size_m / 2 - x) / res)), int(math.floor((size_m / 2 - y) / res))
+    r, c = np.floor(BevGrid(size_m, f).xy_to_rc([x, y])).astype(int)
+    return int(r), int(c)
 
 
 def test_zero_angle_is_the_identity() -> None:
-    masks = torch.rand(2, 16, 16) > 0.5
+    masks = torch.rand(2, 1, 16, 16) > 0.5
     out, outside = rotate_masks(masks, torch.zeros(2), 32.0)
     assert torch.equal(out, masks) and not outside.any()
 
 
 def test_a_quarter_turn_takes_the_front_to_the_left() -> None:
-    masks = torch.zeros(1, 8, 8, dtype=torch.bool)
-    masks[0, 1, 3] = True  # x = 2.5 m ahead, y = 0.5 m left (8 m grid, 1 m cells)
+    masks = torch.zeros(1, 1, 8, 8, dtype=torch.bool)
+    masks[0, 0, 1, 3] = True  # x = 2.5 m ahead, y = 0.5 m left (8 m grid, 1 m cells)
     out, outside = rotate_masks(masks, torch.tensor([math.pi / 2]), 8.0)
-    assert out.sum() == 1 and out[0, 4, 1]  # turned +x -> +y: x = -0.5, y = 2.5
+    assert out.sum() == 1 and out[0, 0, 4, 1]  # turned +x -> +y: x = -0.5, y = 2.5
     assert not outside.any()  # a square turned by 90 degrees covers itself
 
 
 def test_corners_come_from_outside_at_45_degrees() -> None:
-    out, outside = rotate_masks(torch.ones(1, 32, 32, dtype=torch.bool), torch.tensor([math.pi / 4]), 32.0)
+    out, outside = rotate_masks(torch.ones(1, 1, 32, 32, dtype=torch.bool), torch.tensor([math.pi / 4]), 32.0)
     assert outside[0, 0, 0] and outside[0, -1, -1] and not outside[0, 16, 16]
-    assert torch.equal(out, ~outside)
+    assert torch.equal(out[:, 0], ~outside)
 
 
 def test_masks_follow_the_camera_rays() -> None:
