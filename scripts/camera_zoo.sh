@@ -12,11 +12,12 @@ V=${V2VSIM:-v2vsim}
 # "visible" means seen by a camera: the dataset's visibility masks follow the cameras, not the LiDAR.
 scripts/zoo_data.sh "$DATA" 10 --cameras --set perception.modality=camera --set perception.encoder=sinbevt
 # A camera zoo has no `early` stage (early fusion ships LiDAR points); DiscoNet trains without its teacher.
-# SinBEVT's single-agent stage runs 6 epochs (3 left it short of convergence: README "The camera track").
+# The single-agent stages run 6 epochs (3 left them short of convergence: README "The camera track").
 $V train --data "$DATA" --encoder sinbevt --stage single --epochs 6 --out "$ZOO" --work "$WORK/sinbevt" --resume
 for stage in cache none cobevt v2vnet attfuse fcooper disconet; do
   $V train --data "$DATA" --encoder sinbevt --stage $stage --out "$ZOO" --work "$WORK/sinbevt" --resume
 done
-for stage in single cache none cobevt; do
+$V train --data "$DATA" --encoder lara --stage single --epochs 6 --out "$ZOO" --work "$WORK/lara" --resume
+for stage in cache none cobevt; do
   $V train --data "$DATA" --encoder lara --stage $stage --out "$ZOO" --work "$WORK/lara" --resume
 done
