@@ -29,27 +29,20 @@ from agents.common import (
     read_key,
     run_agent,
 )
+from agents.timing import StageTimer, write_timing
 from v2vsim.comm.codec import Message, encode
 from v2vsim.comm.share import feature_message
-from v2vsim.geometry import Pose
-from v2vsim.gt import visible_actor_ids
-from v2vsim.perception import (
-    body_frame_points,
-    build_agent_encoder,
-    build_compressor,
-    build_method_models,
-    compress,
-    late_outputs,
-    pooled_confidence,
-)
-from v2vsim.perception import encode as encode_features
+from v2vsim.evaluation.gt import visible_actor_ids
+from v2vsim.perception.build import build_agent_encoder, build_compressor, build_method_models, compress
+from v2vsim.perception.encode import body_frame_points, late_outputs, pooled_confidence
+from v2vsim.perception.encode import encode as encode_features
 from v2vsim.recording.scan import encode_scan, world_points
-from v2vsim.sensing import SensorFrame, sense
 from v2vsim.sensors.camera import render_cameras
 from v2vsim.sensors.scene import Scene, build_map_assets, build_scene
-from v2vsim.timing import StageTimer, write_timing
-from v2vsim.world import WorldState
-from v2vsim.world_io import static_from_bytes, world_from_bytes
+from v2vsim.sensors.sensing import SensorFrame, sense
+from v2vsim.world.geometry import Pose
+from v2vsim.world.serialize import static_from_bytes, world_from_bytes
+from v2vsim.world.state import WorldState
 
 
 def cav_loop(args: AgentArgs, bus: Bus) -> int:

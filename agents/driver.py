@@ -16,9 +16,9 @@ import time
 
 from agents.common import START_TIMEOUT_S, AgentArgs, Bus, parse_agent_args, run_agent
 from agents.progress import report_progress
-from v2vsim.timing import StageTimer, write_timing
+from agents.timing import StageTimer, write_timing
 from v2vsim.traffic import make_backend
-from v2vsim.world_io import static_to_bytes, world_to_bytes
+from v2vsim.world.serialize import static_to_bytes, world_to_bytes
 
 
 def drive(args: AgentArgs, bus: Bus) -> int:

@@ -45,17 +45,16 @@ from agents.common import (
     run_agent,
 )
 from agents.progress import report_progress
+from agents.timing import StageTimer
 from v2vsim.comm.inbox import Inbox, LinkEvent, distance
 from v2vsim.comm.share import dense_payload
 from v2vsim.comm.stats import CommStats
 from v2vsim.comm.wire_spec import EgoDecoder, ego_wire_spec, message_kind
-from v2vsim.evaluate import box_iou, predict_all, score_all
-from v2vsim.geometry import Pose, relative_pose
-from v2vsim.gt import bev_ground_truth, gt_boxes
-from v2vsim.metrics import ApAccumulator, MethodScore, cavs_in_range
-from v2vsim.perception import (
-    FusionInputs,
-    Prediction,
+from v2vsim.evaluation.fuse_and_score import box_iou, predict_all, score_all
+from v2vsim.evaluation.gt import bev_ground_truth, gt_boxes
+from v2vsim.evaluation.metrics import ApAccumulator, MethodScore, cavs_in_range
+from v2vsim.evaluation.report import RunSummary, write_outputs
+from v2vsim.perception.build import (
     build_agent_encoder,
     build_compressor,
     build_method_models,
@@ -63,13 +62,13 @@ from v2vsim.perception import (
     method_checkpoints,
     runnable_methods,
 )
+from v2vsim.perception.fuse import FusionInputs, Prediction
 from v2vsim.recording.recorder import Recorder
 from v2vsim.recording.scan import Scan, decode_scan, max_scan_bytes, scan_frame
-from v2vsim.report import RunSummary, write_outputs
 from v2vsim.sensors.scene import build_map_assets
-from v2vsim.timing import StageTimer
-from v2vsim.world import WorldState
-from v2vsim.world_io import static_from_bytes, world_from_bytes
+from v2vsim.world.geometry import Pose, relative_pose
+from v2vsim.world.serialize import static_from_bytes, world_from_bytes
+from v2vsim.world.state import WorldState
 
 HANG_TIMEOUT_S = 60.0  # a live CAV that sends nothing for this long is treated as lost
 MAX_VIS_BYTES = 1 << 20  # the visible-ids side channel: a few hundred ids

@@ -11,7 +11,7 @@ Methods (models.registry.METHODS):
   model = training the single-agent model).
 
 Inference (decoding, late merging, box decoding) has one implementation, used by the ego of a run
-and by validation during training alike: ``v2vsim.perception.predict``.
+and by validation during training alike: ``v2vsim.perception.fuse.predict``.
 """
 
 from __future__ import annotations

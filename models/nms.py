@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-# Unit-box corners, counter-clockwise starting front-left (same order as v2vsim.geometry.box_corners).
+# Unit-box corners, counter-clockwise starting front-left (same order as v2vsim.world.geometry.box_corners).
 _UNIT_CORNERS = ((0.5, 0.5), (-0.5, 0.5), (-0.5, -0.5), (0.5, -0.5))
 
 

@@ -19,7 +19,7 @@ queries (per camera) = BEV features + BEV embedding, so q.k compares "direction 
 the cell" with "direction of this pixel's ray".
 
 Frames: camera OpenCV (x right, y down, z forward); extrinsics are camera-to-agent-body (x forward,
-y left, z up). The output grid follows v2vsim.geometry.BevGrid: row 0 = front (+x), column 0 = left
+y left, z up). The output grid follows v2vsim.world.geometry.BevGrid: row 0 = front (+x), column 0 = left
 (+y), cell (r, c) centre at x = S/2 - (r + 0.5) S/F, y = S/2 - (c + 0.5) S/F over S = ``bev_size_m``.
 Intrinsics use the continuous pixel convention (the image spans [0, w] x [0, h]).
 """

@@ -1,6 +1,6 @@
 """Move BEV maps, points and boxes from a sender's body frame into the ego body frame.
 
-Convention (v2vsim.geometry.BevGrid): row r, column c of an S x S metre grid with H x W cells
+Convention (v2vsim.world.geometry.BevGrid): row r, column c of an S x S metre grid with H x W cells
 has body-frame centre x = S/2 - (r + 0.5) S/H, y = S/2 - (c + 0.5) S/W.
 
 grid_sample's normalised coordinates (align_corners=False) put the centre of column c at

@@ -29,4 +29,4 @@ for enc in ${ENCODERS:-sinbevt lara}; do
     done
   done
 done
-python benchmarks/zoo_table.py "${dirs[@]}"
+python scripts/zoo_table.py "${dirs[@]}"

@@ -18,4 +18,4 @@ for sc in intersection t_junction; do
     dirs+=("$OUT/${sc}_s${seed}_default" "$OUT/${sc}_s${seed}_ideal")
   done
 done
-python benchmarks/zoo_table.py "${dirs[@]}"
+python scripts/zoo_table.py "${dirs[@]}"

@@ -26,7 +26,8 @@ from models.fusion.early import merge_points_to_ego  # noqa: E402
 from models.registry import MODALITY  # noqa: E402
 from v2vsim.config import load_scenario  # noqa: E402
 from v2vsim.data.torch_dataset import CooperativeDataset  # noqa: E402
-from v2vsim.perception import build_agent_encoder, build_method_models, predict  # noqa: E402
+from v2vsim.perception.build import build_agent_encoder, build_method_models  # noqa: E402
+from v2vsim.perception.fuse import predict  # noqa: E402
 from v2vsim.training.train import sample_fusion_inputs  # noqa: E402
 
 

@@ -68,7 +68,7 @@ def _cmd_router(args: argparse.Namespace) -> int:
 
 def _cmd_frame(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario, args.overrides)
-    from v2vsim.frame import write_frame
+    from v2vsim.data.frame import write_frame
 
     written = write_frame(scenario, args.at, Path(args.out))
     print(f"wrote {len(written)} files to {args.out}")
@@ -126,19 +126,10 @@ def _cmd_models(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    if args.what == "sensors":
-        from v2vsim.bench_sensors import main as bench
+    import importlib
 
-        return int(bench(list(args.rest)) or 0)
-    import runpy
-
-    script = Path(__file__).resolve().parents[1] / "benchmarks" / f"bench_{args.what}.py"
-    if not script.is_file():
-        print(f"v2vsim: error: {script} not found (benchmarks run from a source checkout)", file=sys.stderr)
-        return 2
-    sys.argv = [str(script), *args.rest]
-    runpy.run_path(str(script), run_name="__main__")
-    return 0
+    bench = importlib.import_module(f"v2vsim.bench.{args.what}")
+    return int(bench.main(list(args.rest)) or 0)
 
 
 def _cmd_sweep(args: argparse.Namespace) -> int:
@@ -308,8 +299,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--at", default="0", help="with --screenshots: comma-separated frames (default 0)")
     p.set_defaults(func=_cmd_view)
 
-    p = sub.add_parser("bench", help="benchmarks: sensors | models | comm | run | env")
-    p.add_argument("what", choices=["sensors", "models", "comm", "run", "env"])
+    p = sub.add_parser("bench", help="benchmarks: sensors | models | comm | run | env | placement")
+    p.add_argument("what", choices=["sensors", "models", "comm", "run", "env", "placement"])
     p.add_argument("rest", nargs=argparse.REMAINDER, help="options passed to the benchmark (see its --help)")
     p.set_defaults(func=_cmd_bench)
     return parser

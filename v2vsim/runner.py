@@ -39,8 +39,8 @@ from agents.progress import ENV as PROGRESS_ENV
 from agents.progress import ProgressDisplay, parse_record
 from v2vsim.comm.transport import TransportError, free_ports, loopback_endpoint, open_session
 from v2vsim.config import ConfigError, Scenario, check_output_dir
-from v2vsim.perception import check_scenario
-from v2vsim.sensing import ego_ids
+from v2vsim.perception.build import check_scenario
+from v2vsim.sensors.sensing import ego_ids
 from v2vsim.traffic.base import cav_id
 
 STOP_GRACE_S = 5.0  # after SIGINT, children get this long to write their files before SIGKILL

@@ -197,8 +197,8 @@ def test_a_crashed_ego_writes_crashed_not_complete(tmp_path: Path, monkeypatch: 
     """Issue 8 item 9: an exception in ego_loop wrote status "complete" (the finally wrote whatever it had)."""
     import agents.ego as ego_mod
     from tests.v2vsim.sensors._worlds import car, static_map
-    from v2vsim.world import WorldState
-    from v2vsim.world_io import static_to_bytes, world_to_bytes
+    from v2vsim.world.serialize import static_to_bytes, world_to_bytes
+    from v2vsim.world.state import WorldState
 
     sc = load_scenario(SCENARIO, ["output.rerun=false", "perception.methods=[none]", "transport.clock=realtime"])
     static = static_map()

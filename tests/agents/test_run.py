@@ -135,7 +135,7 @@ def _check_recording(rrd: Path, tmp_path: Path) -> None:
     method, 4 frames; the boxes where `v2vsim frame` puts the same vehicles at 0.2 s (frame 2)."""
     from tests.v2vsim.recording.rrd import Recording
     from v2vsim.config import load_scenario
-    from v2vsim.frame import write_frame
+    from v2vsim.data.frame import write_frame
 
     rec = Recording(rrd)
     for cav in ("cav0", "cav1", "cav2"):

@@ -131,7 +131,7 @@ def test_late_boxes_transform_and_deduplicate() -> None:
 
 def test_late_boxes_beyond_the_ego_grid_are_dropped() -> None:
     """A neighbour 40 m ahead sees a car 30 m further on: 70 m from the ego, off its 100 m grid, where
-    ground truth has no box for it (v2vsim.gt.gt_boxes) and it could only count as a false positive."""
+    ground truth has no box for it (v2vsim.evaluation.gt.gt_boxes) and it could only count as a false positive."""
     ego = torch.tensor([[10.0, 1.0, 4.5, 1.9, 0.0, 0.8]])
     nb = torch.tensor([[30.0, 0.0, 4.5, 1.9, 0.0, 0.9], [5.0, 0.0, 4.5, 1.9, 0.0, 0.7]])
     poses = torch.tensor([[0.0, 0.0, 0.0], [40.0, 0.0, 0.0]])

@@ -19,7 +19,7 @@ from models.heads import (
 )
 from models.losses import detection_loss, dynamic_target, segmentation_loss, sigmoid_focal_loss, static_target
 from models.registry import build_heads
-from v2vsim.geometry import BevGrid
+from v2vsim.world.geometry import BevGrid
 
 
 def test_table_a2_decoder_shapes_paper() -> None:

@@ -11,7 +11,7 @@ from torch import nn
 
 from models.lara import BevLatentCrossAttention, build_lara, fourier_encode
 from models.sinbevt import default_camera_rig
-from v2vsim.geometry import BevGrid
+from v2vsim.world.geometry import BevGrid
 
 SMALL = dict(
     image_size=(64, 64),

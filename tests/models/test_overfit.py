@@ -16,7 +16,7 @@ from models.heads import AnchorTargetAssigner
 from models.losses import detection_loss, segmentation_loss, static_target
 from models.registry import build_cooperative
 from models.warp import transform_points
-from v2vsim.geometry import BevGrid
+from v2vsim.world.geometry import BevGrid
 
 BEV = 51.2  # a smaller area keeps the test fast; the grids are the tiny preset's (F = 32, 256 x 256 out)
 

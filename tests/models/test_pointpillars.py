@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from models.pointpillars import build_pointpillars, voxelize
-from v2vsim.geometry import BevGrid
+from v2vsim.world.geometry import BevGrid
 
 EXTENT, VOXEL, Z = 102.4, 0.4, (-1.0, 3.0)
 

@@ -18,7 +18,7 @@ from models.sinbevt import (
     feature_rays,
     resize_images,
 )
-from v2vsim.geometry import BevGrid
+from v2vsim.world.geometry import BevGrid
 
 # a SinBEVT small enough to train in a test: 64x64 images, features 8/4/2, BEV 32 -> 16 -> 16
 SMALL = dict(

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from models.warp import transform_boxes, transform_points, warp_to_ego
-from v2vsim.geometry import BevGrid
+from v2vsim.world.geometry import BevGrid
 
 S, H = 32.0, 32  # 1 m cells
 RES = S / H

@@ -10,10 +10,10 @@ import torch
 
 from models.warp import warp_to_ego
 from v2vsim.config import load_scenario
-from v2vsim.geometry import relative_pose
-from v2vsim.gt import bev_ground_truth
+from v2vsim.evaluation.gt import bev_ground_truth
 from v2vsim.sensors.scene import build_map_assets
 from v2vsim.traffic import make_backend
+from v2vsim.world.geometry import relative_pose
 
 SCENARIO = Path(__file__).resolve().parents[2] / "scenarios" / "intersection.yaml"
 

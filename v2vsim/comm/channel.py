@@ -27,7 +27,7 @@ import numpy as np
 from v2vsim.comm import tr37885
 from v2vsim.comm.tr37885 import LinkGeometry, LinkState
 from v2vsim.config import CommConfig, PoseNoiseConfig
-from v2vsim.geometry import Pose
+from v2vsim.world.geometry import Pose
 
 Reason = Literal["ok", "out_of_range", "dropped"]
 PoseT = TypeVar("PoseT", Pose, tuple[float, float, float, float])

@@ -22,7 +22,7 @@ from v2vsim.comm.medium import SharedMedium
 from v2vsim.comm.stats import CommStats
 from v2vsim.comm.tr37885 import LinkGeometry
 from v2vsim.config import CommConfig
-from v2vsim.world import WorldState
+from v2vsim.world.state import WorldState
 
 
 @dataclass(frozen=True)

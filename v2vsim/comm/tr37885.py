@@ -23,7 +23,7 @@ import numpy as np
 import shapely
 
 from v2vsim.config import ChannelConfig
-from v2vsim.world import StaticMap, WorldState
+from v2vsim.world.state import StaticMap, WorldState
 
 LinkState = Literal["los", "nlos", "nlosv"]
 LINK_STATES: tuple[LinkState, ...] = ("los", "nlos", "nlosv")

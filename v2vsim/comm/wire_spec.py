@@ -6,7 +6,7 @@ inflating message from its header alone (v2vsim.comm.codec "KindSpec"):
   features  (C / r, F, F) float16: the encoder's grid, exactly; the header must name the
             scenario's ratio r = comm.channel_compression (the ego's decoder is built for it)
   points    (<= lidar.channels * lidar.points_per_channel, 4) float32: one body-frame sweep
-            (v2vsim.perception.body_frame_points keeps at most one return per ray)
+            (v2vsim.perception.encode.body_frame_points keeps at most one return per ray)
   outputs   (3, 8F, 8F) float16 maps (the decoder upsamples the grid 8x), and exactly one
             extra, "boxes" (<= MAX_BOXES, 6): x, y, l, w, yaw, score after NMS
   sparse    (N, C / r) float16, N <= F * F: the values of N cells of the features map (ratio r as
@@ -31,7 +31,7 @@ from v2vsim.config import Scenario
 MAX_BOXES = MAX_DETECTIONS
 """Late fusion ships at most this many boxes per CAV: models.heads.decode_detections' top_k."""
 
-BOX_FIELDS = 6  # x, y, l, w, yaw, score (v2vsim.perception.late_outputs)
+BOX_FIELDS = 6  # x, y, l, w, yaw, score (v2vsim.perception.encode.late_outputs)
 DECODER_UPSAMPLING = 8  # late outputs are 8x the encoder grid
 
 

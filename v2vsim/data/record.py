@@ -31,13 +31,13 @@ from v2vsim.data.layout import (
     read_manifest,
     run_name,
 )
-from v2vsim.gt import bev_ground_truth, gt_boxes, visible_actor_ids
-from v2vsim.perception import body_frame_points
-from v2vsim.sensing import sense
+from v2vsim.evaluation.gt import bev_ground_truth, gt_boxes, visible_actor_ids
+from v2vsim.perception.encode import body_frame_points
 from v2vsim.sensors.scene import build_map_assets, build_scene
+from v2vsim.sensors.sensing import sense
 from v2vsim.traffic import make_backend
-from v2vsim.world import WorldState
-from v2vsim.world_io import static_from_bytes, static_to_bytes, world_from_bytes, world_to_bytes
+from v2vsim.world.serialize import static_from_bytes, static_to_bytes, world_from_bytes, world_to_bytes
+from v2vsim.world.state import WorldState
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -100,7 +100,7 @@ def _write_manifest(root: Path, doc: dict) -> None:
     tmp.replace(root / "manifest.json")
 
 
-TRAFFIC_DIR = "traffic"  # <run>/traffic/: static.npz + worlds.jsonl.gz (v2vsim.world_io, no pickle)
+TRAFFIC_DIR = "traffic"  # <run>/traffic/: static.npz + worlds.jsonl.gz (v2vsim.world.serialize, no pickle)
 
 
 def record_traffic(sc: Scenario, frames: int, run_dir: Path) -> list[WorldState]:

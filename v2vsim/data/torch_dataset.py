@@ -24,7 +24,7 @@ from torch import Tensor
 from torch.utils.data import Dataset
 
 from v2vsim.data.layout import DatasetError, frame_path, read_manifest, runs_of, unpack_masks
-from v2vsim.geometry import Pose, relative_pose
+from v2vsim.world.geometry import Pose, relative_pose
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,7 @@
 bytes are the cost (Where2comm's question, on bytes that were actually encoded).
 
 One process, the run's code: the traffic backend steps the world; every CAV senses
-(v2vsim.sensing), encodes (v2vsim.perception) and ranks its feature cells by its own single-agent
+(v2vsim.sensors.sensing), encodes (v2vsim.perception) and ranks its feature cells by its own single-agent
 vehicle confidence; its action picks the share of cells it sends, which becomes a real message
 (v2vsim.comm.share + codec; its byte count is the encoded length). Each receiver decodes it with the
 ego's wire spec, passes it through its own channel model (v2vsim.comm.inbox: latency, loss,
@@ -14,7 +14,7 @@ Step t: the actions apply to the frame the observations showed (frame t); the re
 frame t; then the world moves to frame t + 1 and the new observations are sensed.
 
 Reward of agent i: sum over the other receivers j of IoU_j(all messages) - IoU_j(all but i's), the
-per-frame visible-vehicle IoU (v2vsim.metrics) with `methods[0]`, minus `byte_cost` per byte i
+per-frame visible-vehicle IoU (v2vsim.evaluation.metrics) with `methods[0]`, minus `byte_cost` per byte i
 encoded. Frames where j's ground truth and prediction are both empty count 0.
 """
 
@@ -39,25 +39,17 @@ from v2vsim.comm.share import cells_sent, dense_payload, feature_message
 from v2vsim.comm.stats import CommStats
 from v2vsim.comm.wire_spec import EgoDecoder, ego_wire_spec
 from v2vsim.config import ConfigError, Scenario, load_scenario
-from v2vsim.geometry import Pose, relative_pose
-from v2vsim.gt import bev_ground_truth, visible_actor_ids
-from v2vsim.metrics import MethodScore, vehicle_iou
-from v2vsim.perception import (
-    FusionInputs,
-    Prediction,
-    build_agent_encoder,
-    build_compressor,
-    build_method_models,
-    compress,
-    decompress,
-    predict,
-    vehicle_confidence,
-)
-from v2vsim.perception import encode as encode_features
-from v2vsim.sensing import ego_ids, sense
+from v2vsim.evaluation.gt import bev_ground_truth, visible_actor_ids
+from v2vsim.evaluation.metrics import MethodScore, vehicle_iou
+from v2vsim.perception.build import build_agent_encoder, build_compressor, build_method_models, compress, decompress
+from v2vsim.perception.encode import encode as encode_features
+from v2vsim.perception.encode import vehicle_confidence
+from v2vsim.perception.fuse import FusionInputs, Prediction, predict
 from v2vsim.sensors.scene import build_map_assets, build_scene
+from v2vsim.sensors.sensing import ego_ids, sense
 from v2vsim.traffic import TrafficBackend, cav_id, make_backend
-from v2vsim.world import WorldState
+from v2vsim.world.geometry import Pose, relative_pose
+from v2vsim.world.state import WorldState
 
 NO_LINK = -1.0  # distance / latency of a link that does not exist (itself, a CAV gone)
 

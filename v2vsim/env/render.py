@@ -10,8 +10,8 @@ import numpy as np
 
 from v2vsim.comm.codec import Message
 from v2vsim.config import BevConfig
-from v2vsim.geometry import BevGrid, body_to_world, world_to_body
 from v2vsim.recording.bev import ERROR_CLASSES, GT_CLASSES, error_image, gt_image
+from v2vsim.world.geometry import BevGrid, body_to_world, world_to_body
 
 SENDER_RGB = np.array([(255, 200, 40), (60, 200, 255), (120, 255, 120), (255, 110, 200), (200, 140, 255),
                        (255, 150, 80), (80, 255, 220), (230, 230, 230)], np.uint8)

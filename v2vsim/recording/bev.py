@@ -12,8 +12,8 @@ import torch
 from matplotlib import colormaps
 
 from models.nms import box_corners
-from v2vsim.geometry import BevGrid
-from v2vsim.metrics import THRESHOLD
+from v2vsim.evaluation.metrics import THRESHOLD
+from v2vsim.world.geometry import BevGrid
 
 GT_CLASSES = [(0, "background", (20, 20, 20)), (1, "road", (90, 90, 90)), (2, "lane", (230, 230, 230)),
               (3, "vehicle", (255, 80, 60)), (4, "vehicle (not visible)", (120, 60, 160))]

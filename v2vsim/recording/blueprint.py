@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import rerun.blueprint as rrb
 
-from v2vsim.world import StaticMap
+from v2vsim.world.state import StaticMap
 
 
 def _method_grid(methods: list[str], layer: str, name: str) -> rrb.Grid:

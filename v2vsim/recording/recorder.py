@@ -22,13 +22,13 @@ import rerun as rr
 
 from v2vsim.comm.inbox import LinkEvent
 from v2vsim.config import Scenario
-from v2vsim.geometry import BevGrid
-from v2vsim.perception import FusionInputs, Prediction
+from v2vsim.perception.fuse import FusionInputs, Prediction
 from v2vsim.recording import bev, world3d
 from v2vsim.recording.blueprint import default_blueprint
 from v2vsim.recording.scan import Scan, jpeg
 from v2vsim.sensors.camera import camera_rig
-from v2vsim.world import StaticMap, WorldState
+from v2vsim.world.geometry import BevGrid
+from v2vsim.world.state import StaticMap, WorldState
 
 BATCHING = rr.ChunkBatcherConfig(flush_tick=timedelta(seconds=30), flush_num_bytes=16 << 20, flush_num_rows=1 << 20)
 METHOD_PALETTE = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189),

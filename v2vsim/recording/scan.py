@@ -18,8 +18,8 @@ import numpy as np
 from PIL import Image
 
 from v2vsim.config import Scenario
-from v2vsim.geometry import Pose
 from v2vsim.sensors.camera import camera_rig
+from v2vsim.world.geometry import Pose
 
 MAX_POINTS = 3000  # per CAV and frame (of ~30 k): enough to see the scene, 36 KB per sweep
 

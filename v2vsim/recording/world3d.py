@@ -16,9 +16,9 @@ import shapely
 from shapely.geometry import Polygon
 
 from v2vsim.comm.inbox import LinkEvent
-from v2vsim.geometry import Pose, body_to_world
 from v2vsim.sensors.camera import CameraRig
-from v2vsim.world import Actor, StaticMap
+from v2vsim.world.geometry import Pose, body_to_world
+from v2vsim.world.state import Actor, StaticMap
 
 GROUND_RGB = (58, 74, 48)
 ROAD_RGB = (88, 88, 94)

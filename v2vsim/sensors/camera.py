@@ -32,7 +32,7 @@ from v2vsim.sensors.scene import (
     actor_index,
     build_scene,
 )
-from v2vsim.world import WorldState
+from v2vsim.world.state import WorldState
 
 # Palette rows (render_cameras): fixed colours, then one paint colour per actor.
 P_SKY, P_ROAD, P_OFFROAD, P_BUILDING, P_GLASS, P_VEHICLES = range(6)

@@ -24,7 +24,7 @@ from v2vsim.sensors.scene import (
     actor_index,
     build_scene,
 )
-from v2vsim.world import WorldState
+from v2vsim.world.state import WorldState
 
 # Diffuse reflectivity by material (intensity = reflectivity x |cos incidence|).
 REFLECTIVITY_VEHICLE = 0.75

@@ -21,7 +21,7 @@ import shapely
 from PIL import Image, ImageDraw
 from shapely.geometry import LineString, Polygon
 
-from v2vsim.world import StaticMap, WorldState
+from v2vsim.world.state import StaticMap, WorldState
 
 # What a ray hit (RayHits.kind).
 HIT_NONE = 0  # sky, or beyond the sensor's range

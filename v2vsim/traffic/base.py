@@ -21,7 +21,7 @@ from __future__ import annotations
 from types import TracebackType
 from typing import Protocol, Self, runtime_checkable
 
-from v2vsim.world import StaticMap, WorldState
+from v2vsim.world.state import StaticMap, WorldState
 
 
 def cav_id(index: int) -> str:

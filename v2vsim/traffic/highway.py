@@ -44,7 +44,7 @@ reach the junction with the ego and to leave by its exit are in range for ~14 of
 best (< 80 %), and CAVs of its own arm are ahead of it and leave the map before it. Only a
 single-arm platoon could do better, which gives up the different viewpoints cooperative
 perception is about. So the env's own spawn is kept (arm i % 4,
-35-45 m before the junction). Measured with benchmarks/placement.py over seeds 0-19: >= 2 other
+35-45 m before the junction). Measured with v2vsim/bench/placement.py over seeds 0-19: >= 2 other
 CAVs within 70 m of cav0 in 62-100 % of the frames (min 0.62), and cav0 leaves before frame 200
 on 7 of the 20 seeds (as early as frame 175).
 """
@@ -60,9 +60,9 @@ import numpy as np
 from shapely.geometry import LineString
 
 from v2vsim.config import Scenario
-from v2vsim.geometry import Pose, wrap_angle
 from v2vsim.traffic.base import BackendBase, cav_id
-from v2vsim.world import Actor, StaticMap, WorldState
+from v2vsim.world.geometry import Pose, wrap_angle
+from v2vsim.world.state import Actor, StaticMap, WorldState
 
 ENV_ID = "intersection-v0"
 VEHICLE_HEIGHT_M = 1.5

@@ -25,7 +25,7 @@ import numpy as np
 import sumolib
 from shapely.geometry import LineString, Polygon
 
-from v2vsim.world import Building, StaticMap
+from v2vsim.world.state import Building, StaticMap
 
 _BUFFER_RES = 4  # segments per quarter circle for round joins: enough for 3.5 m lanes
 

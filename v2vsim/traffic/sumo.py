@@ -66,10 +66,10 @@ import numpy as np
 import sumolib
 
 from v2vsim.config import Scenario
-from v2vsim.geometry import Pose, wrap_angle
 from v2vsim.traffic.base import BackendBase, cav_id
 from v2vsim.traffic.static_map import load_sumo_map
-from v2vsim.world import Actor, StaticMap, WorldState
+from v2vsim.world.geometry import Pose, wrap_angle
+from v2vsim.world.state import Actor, StaticMap, WorldState
 
 # Vehicle types: (id, vClass, length m, width m, height m, max speed m/s, accel m/s^2, decel m/s^2,
 # driver imperfection sigma, speed-factor deviation).

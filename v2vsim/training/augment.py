@@ -7,7 +7,7 @@ frame by theta is exact for cameras: each camera-to-agent extrinsic becomes R_z(
 is rotated by the same theta. Cells whose source lies outside the recorded grid are marked "outside" and
 left out of the loss. Boxes are not rotated: camera models have no detection head.
 
-BEV grid as v2vsim.geometry.BevGrid: row 0 = front (+x), column 0 = left (+y), cell (r, c) centre at
+BEV grid as v2vsim.world.geometry.BevGrid: row 0 = front (+x), column 0 = left (+y), cell (r, c) centre at
 x = S/2 - (r + 0.5) S/F, y = S/2 - (c + 0.5) S/F. Positive theta turns +x towards +y (counter-clockwise
 seen from above).
 """

@@ -15,7 +15,7 @@ and its DiscoNet trains without distillation (its teacher is early fusion).
 
 Losses (models.losses): focal loss on the dynamic class, cross-entropy on road/lane, focal +
 smooth-L1 on the anchor head. AdamW with a one-cycle schedule; seeded; progress with loss,
-samples/s and ETA; validation (the one prediction path, v2vsim.evaluate) after every epoch;
+samples/s and ETA; validation (the one prediction path, v2vsim.evaluation.fuse_and_score) after every epoch;
 checkpoints every few minutes and per epoch under --work; `--resume` continues mid-epoch.
 """
 
@@ -46,9 +46,10 @@ from models.losses import (
 from models.registry import MODALITY, build_cooperative
 from v2vsim.data.layout import DatasetError, runs_of
 from v2vsim.data.torch_dataset import CooperativeDataset, collate, tensor_inputs
-from v2vsim.evaluate import box_iou, fuse_and_score
-from v2vsim.metrics import ApAccumulator, MethodScore
-from v2vsim.perception import FusionInputs, encode_points, late_outputs
+from v2vsim.evaluation.fuse_and_score import box_iou, fuse_and_score
+from v2vsim.evaluation.metrics import ApAccumulator, MethodScore
+from v2vsim.perception.encode import encode_points, late_outputs
+from v2vsim.perception.fuse import FusionInputs
 from v2vsim.training.augment import yaw_rotate_batch
 from v2vsim.training.cache import FeatureCache, build_feature_cache
 
@@ -286,7 +287,7 @@ def sample_fusion_inputs(s: dict, single: nn.Module, cache: FeatureCache | None 
 def evaluate_samples(models: dict[str, nn.Module], single: nn.Module, ds: CooperativeDataset, idx: list[int],
                      cache: FeatureCache | None = None) -> dict[str, dict]:
     """metrics.json-style scores of `models` on dataset samples, through the ego's own scoring
-    (v2vsim.evaluate.fuse_and_score) on `sample_fusion_inputs`."""
+    (v2vsim.evaluation.fuse_and_score.fuse_and_score) on `sample_fusion_inputs`."""
     scores = {m: MethodScore(boxes=ApAccumulator()) for m in models}
     for i in idx:
         s = ds[i]

@@ -10,7 +10,7 @@ import pytest
 
 from v2vsim.comm.channel import LinkModel, is_stale, noisy_pose, serialisation_delay
 from v2vsim.config import CommConfig, DropConfig, LatencyConfig, PoseNoiseConfig
-from v2vsim.geometry import Pose
+from v2vsim.world.geometry import Pose
 
 
 def comm(**kw) -> CommConfig:

@@ -34,8 +34,8 @@ from v2vsim.comm.tr37885 import (
     success_probability,
 )
 from v2vsim.config import ChannelConfig, CommConfig, ConfigError, DropConfig, LatencyConfig, scenario_from_dict
-from v2vsim.geometry import Pose
-from v2vsim.world import Actor, Building, StaticMap, WorldState
+from v2vsim.world.geometry import Pose
+from v2vsim.world.state import Actor, Building, StaticMap, WorldState
 
 FC = 5.9
 CAR = (4.5, 1.8, 1.5)

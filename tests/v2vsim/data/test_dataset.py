@@ -15,9 +15,9 @@ from v2vsim.config import load_scenario
 from v2vsim.data.layout import DatasetError, frame_path, pack_masks, unpack_masks
 from v2vsim.data.record import parse_seeds, record_dataset, record_frame
 from v2vsim.data.torch_dataset import CooperativeDataset, collate, select_agents
-from v2vsim.geometry import Pose, relative_pose
 from v2vsim.sensors.scene import build_map_assets
 from v2vsim.traffic import make_backend
+from v2vsim.world.geometry import Pose, relative_pose
 
 
 def test_manifest_records_splits(tiny_dataset) -> None:

@@ -12,14 +12,14 @@ import pytest
 from tests.v2vsim.recording.rrd import Recording
 from v2vsim.comm.inbox import LinkEvent
 from v2vsim.config import Scenario
-from v2vsim.geometry import Pose
-from v2vsim.metrics import MethodScore
-from v2vsim.perception import FusionInputs, Prediction
+from v2vsim.evaluation.metrics import MethodScore
+from v2vsim.perception.fuse import FusionInputs, Prediction
 from v2vsim.recording import bev
 from v2vsim.recording.recorder import Recorder
 from v2vsim.recording.scan import Scan, image_shape, jpeg
 from v2vsim.recording.world3d import OUTCOME_RGB
-from v2vsim.world import Actor, Building, StaticMap, WorldState
+from v2vsim.world.geometry import Pose
+from v2vsim.world.state import Actor, Building, StaticMap, WorldState
 
 METHODS = ["none", "cobevt"]
 STATIC = StaticMap(roads=(np.array([[-60.0, -4.0], [60.0, -4.0], [60.0, 4.0], [-60.0, 4.0]]),),
@@ -141,7 +141,7 @@ def test_probability_is_a_colour_map_not_a_mask() -> None:
 
 
 def test_box_strips_match_geometry_corners() -> None:
-    from v2vsim.geometry import BevGrid, box_corners
+    from v2vsim.world.geometry import BevGrid, box_corners
 
     grid = BevGrid()
     b = np.array([[10.0, -5.0, 4.5, 1.8, 0.7]])

@@ -11,8 +11,8 @@ import pytest
 from PIL import Image
 
 from v2vsim.config import Scenario
-from v2vsim.geometry import Pose
 from v2vsim.recording.scan import MAX_POINTS, decode_scan, encode_scan, image_shape, max_scan_bytes, world_points
+from v2vsim.world.geometry import Pose
 
 
 def test_points_go_to_the_world_frame_with_the_sensor_height() -> None:

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from v2vsim.geometry import Pose
-from v2vsim.world import Actor, Building, StaticMap, WorldState
+from v2vsim.world.geometry import Pose
+from v2vsim.world.state import Actor, Building, StaticMap, WorldState
 
 
 def rect(x0: float, y0: float, x1: float, y1: float) -> np.ndarray:

@@ -10,7 +10,7 @@ import pytest
 from v2vsim.config import CamerasConfig
 from v2vsim.sensors.camera import camera_rig, render_cameras, vehicle_colour
 from v2vsim.sensors.scene import GROUND_MARKING, build_map_assets, build_scene
-from v2vsim.world import Building
+from v2vsim.world.state import Building
 
 from ._worlds import car, rect, static_map, world
 

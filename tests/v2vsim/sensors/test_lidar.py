@@ -10,7 +10,7 @@ import numpy as np
 from v2vsim.config import LidarConfig
 from v2vsim.sensors.lidar import lidar_sweep
 from v2vsim.sensors.scene import build_map_assets, build_scene
-from v2vsim.world import Building
+from v2vsim.world.state import Building
 
 from ._worlds import car, rect, static_map, world
 

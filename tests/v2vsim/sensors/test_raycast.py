@@ -16,7 +16,7 @@ from v2vsim.sensors.scene import (
     build_map_assets,
     build_scene,
 )
-from v2vsim.world import Building
+from v2vsim.world.state import Building
 
 from ._worlds import car, rect, static_map, world
 

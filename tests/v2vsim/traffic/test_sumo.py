@@ -97,7 +97,7 @@ def _neighbours(states, ego: str, range_m: float) -> list[int | None]:
 
 
 # Seeds picked where the canonical plan does not qualify on the signalised net (the look-ahead has
-# to find another placement) as well as ones where it does; see benchmarks/placement.py for 0-19.
+# to find another placement) as well as ones where it does; see v2vsim/bench/placement.py for 0-19.
 @pytest.mark.parametrize(("name", "seed"), [("intersection", 0), ("intersection", 3), ("intersection", 9),
                                             ("t_junction", 1), ("t_junction", 12), ("t_junction", 18)])
 def test_cavs_meet_from_frame0(name: str, seed: int) -> None:

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from v2vsim.geometry import BevGrid
 from v2vsim.training.augment import rotate_masks, yaw_rotate_batch, yaw_rotation
 from v2vsim.training.train import perception_loss
+from v2vsim.world.geometry import BevGrid
 
 
 def _cell(x: float, y: float, size_m: float, f: int) -> tuple[int, int]:

@@ -14,7 +14,7 @@ from models import zoo
 from models.heads import AnchorTargetAssigner
 from v2vsim.config import load_scenario
 from v2vsim.data.torch_dataset import CooperativeDataset, collate
-from v2vsim.perception import build_agent_encoder, build_method_models, method_checkpoints
+from v2vsim.perception.build import build_agent_encoder, build_method_models, method_checkpoints
 from v2vsim.training.train import SPECS, TrainArgs, build_stage_model, forward, perception_loss, run_stage
 
 

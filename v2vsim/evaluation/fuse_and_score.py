@@ -13,8 +13,8 @@ import torch
 from torch import nn
 
 from models.nms import rotated_iou_matrix
-from v2vsim.metrics import MethodScore
-from v2vsim.perception import FusionInputs, Prediction, predict
+from v2vsim.evaluation.metrics import MethodScore
+from v2vsim.perception.fuse import FusionInputs, Prediction, predict
 
 
 def fuse_and_score(models: dict[str, nn.Module], inp: FusionInputs, cells: int, gt: dict[str, np.ndarray],

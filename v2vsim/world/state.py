@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from v2vsim.geometry import Pose, box_corners
+from v2vsim.world.geometry import Pose, box_corners
 
 
 @dataclass(frozen=True)

@@ -9,9 +9,9 @@ import numpy as np
 from PIL import Image
 
 from v2vsim.config import ConfigError, Scenario
-from v2vsim.gt import bev_ground_truth, visible_actor_ids
-from v2vsim.sensing import ego_ids, sense
+from v2vsim.evaluation.gt import bev_ground_truth, visible_actor_ids
 from v2vsim.sensors.scene import build_map_assets, build_scene
+from v2vsim.sensors.sensing import ego_ids, sense
 from v2vsim.traffic import make_backend
 
 

@@ -1,6 +1,6 @@
 """Summarise `v2vsim run` outputs into the zoo's comparison table (README "Results").
 
-    python benchmarks/zoo_table.py RUN_DIR [RUN_DIR ...]
+    python scripts/zoo_table.py RUN_DIR [RUN_DIR ...]
 
 Each RUN_DIR holds a metrics.json. Prints, per (scenario, camera encoder, channel), one row per method with
 visible-vehicle IoU, all-vehicle IoU, road, lane, AP@0.5, AP@0.7 and bytes/frame, averaged over

@@ -1,6 +1,6 @@
 """Benchmark the PettingZoo env (v2vsim.env): steps per second with the scenario's CAVs (4 by default).
 
-    python benchmarks/bench_env.py [--scenario scenarios/intersection.yaml] [--steps 20] [--threads 2]
+    v2vsim bench env [--scenario scenarios/intersection.yaml] [--steps 20] [--threads 2]
                                    [--json out.json]
 
 Three configurations: the default (every CAV a receiver, leave-one-out reward, full feature maps), the
@@ -58,13 +58,14 @@ def bench(scenario: str, steps: int, kwargs: dict) -> dict:
         env.close()
 
 
-def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="v2vsim bench env", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scenario", default="scenarios/intersection.yaml")
     p.add_argument("--steps", type=int, default=20)
     p.add_argument("--threads", type=int, default=2, help="torch intra-op threads (the env is one process)")
     p.add_argument("--json", default=None)
-    a = p.parse_args()
+    a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
     results = {}
     for name, kwargs in CONFIGS.items():
@@ -75,7 +76,8 @@ def main() -> None:
     if a.json:
         with open(a.json, "w") as f:
             json.dump(results, f, indent=1)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

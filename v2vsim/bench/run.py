@@ -20,7 +20,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def run_once(scenario: str, frames: int, pipeline: int, overrides: list[str], out: Path) -> dict:

@@ -1,6 +1,6 @@
 """Benchmark the comm layer on loopback: codec cost, zenoh round trip and throughput, frame share.
 
-    python benchmarks/bench_comm.py [--reps 200] [--json out.json]
+    v2vsim bench comm [--reps 200] [--json out.json]
 
 Two processes (this one and an echo/sink child), each with its own zenoh peer session on
 tcp/127.0.0.1, as the agents run. For each message size it compares bare zenoh carrying raw
@@ -97,14 +97,14 @@ def child(port: int, shm: bool) -> None:
 # ---- the parent ------------------------------------------------------------------------------
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="v2vsim bench comm", description=__doc__.splitlines()[0])
     ap.add_argument("--reps", type=int, default=200)
     ap.add_argument("--json", default=None)
     ap.add_argument("--no-shm", action="store_true",
                     help="turn off zenoh's same-host shared-memory path (what agents on different hosts get)")
     ap.add_argument("--child", type=int, default=None, help=argparse.SUPPRESS)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     if args.child is not None:
         child(args.child, not args.no_shm)
         return
@@ -131,7 +131,7 @@ def main() -> None:
 
     port = T.free_port()
     session = _open(port, not args.no_shm)
-    cmd = [sys.executable, __file__, "--child", str(port)] + (["--no-shm"] if args.no_shm else [])
+    cmd = [sys.executable, "-m", "v2vsim.bench.comm", "--child", str(port)] + (["--no-shm"] if args.no_shm else [])
     proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     try:
         assert proc.stdout is not None and proc.stdout.readline().strip() == "READY"
@@ -211,8 +211,9 @@ def main() -> None:
     if args.json:
         with open(args.json, "w") as f:
             json.dump(results, f, indent=2)
+    return 0
 
 
 if __name__ == "__main__":
     threading.current_thread().name = "bench"
-    main()
+    raise SystemExit(main())

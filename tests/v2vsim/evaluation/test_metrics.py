@@ -10,10 +10,10 @@ import pytest
 
 from v2vsim.comm.stats import CommStats
 from v2vsim.config import ConfigError, scenario_from_dict
-from v2vsim.geometry import Pose
-from v2vsim.metrics import ApAccumulator, MethodScore, cavs_in_range, neighbour_shares
-from v2vsim.report import RunSummary, metrics_json, report_md
-from v2vsim.world import Actor, StaticMap, WorldState
+from v2vsim.evaluation.metrics import ApAccumulator, MethodScore, cavs_in_range, neighbour_shares
+from v2vsim.evaluation.report import RunSummary, metrics_json, report_md
+from v2vsim.world.geometry import Pose
+from v2vsim.world.state import Actor, StaticMap, WorldState
 
 
 def _centre_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -138,7 +138,7 @@ def test_per_frame_vehicle_counts_add_up_to_the_dataset_iou() -> None:
 
 def test_report_and_plot_of_link_states_under_tr37885(tmp_path) -> None:
     from v2vsim.comm.channel import Delivery
-    from v2vsim.report import plot
+    from v2vsim.evaluation.report import plot
 
     comm = CommStats()
     comm.track_link_states()

@@ -11,8 +11,8 @@ import json
 
 import numpy as np
 
-from v2vsim.geometry import Pose
-from v2vsim.world import Actor, Building, StaticMap, WorldState
+from v2vsim.world.geometry import Pose
+from v2vsim.world.state import Actor, Building, StaticMap, WorldState
 
 
 def world_to_bytes(world: WorldState) -> bytes:

@@ -21,11 +21,11 @@ from collections.abc import Collection, Iterable, Mapping
 import numpy as np
 
 from v2vsim.config import BevConfig
-from v2vsim.geometry import BevGrid
 from v2vsim.sensors.camera import CameraFrame
 from v2vsim.sensors.lidar import LidarSweep
 from v2vsim.sensors.scene import GROUND_GT_LANE, GROUND_ROAD, MapAssets, actor_index, build_map_assets
-from v2vsim.world import WorldState
+from v2vsim.world.geometry import BevGrid
+from v2vsim.world.state import WorldState
 
 
 def _ego_boxes(world: WorldState, ego_id: str, ids: Iterable[str] | None = None

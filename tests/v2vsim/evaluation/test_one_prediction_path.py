@@ -14,11 +14,13 @@ from models.registry import build_cooperative
 from v2vsim.comm.codec import Message, decode, encode
 from v2vsim.data.layout import frame_path, unpack_masks
 from v2vsim.data.torch_dataset import CooperativeDataset
-from v2vsim.evaluate import box_iou, fuse_and_score
-from v2vsim.geometry import Pose, relative_pose
-from v2vsim.metrics import ApAccumulator, MethodScore
-from v2vsim.perception import FusionInputs, decompress, encode_points, late_outputs
+from v2vsim.evaluation.fuse_and_score import box_iou, fuse_and_score
+from v2vsim.evaluation.metrics import ApAccumulator, MethodScore
+from v2vsim.perception.build import decompress
+from v2vsim.perception.encode import encode_points, late_outputs
+from v2vsim.perception.fuse import FusionInputs
 from v2vsim.training.train import evaluate_samples
+from v2vsim.world.geometry import Pose, relative_pose
 
 METHODS = ("none", "late", "early", "fcooper", "cobevt")
 

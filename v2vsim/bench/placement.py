@@ -1,6 +1,6 @@
 """Do the CAVs meet? Per scenario and seed, how many other CAVs are within comm range of the ego.
 
-    python benchmarks/placement.py [SCENARIO.yaml ...] [--seeds 0-19] [--set key=value ...]
+    v2vsim bench placement [SCENARIO.yaml ...] [--seeds 0-19] [--set key=value ...]
 
 Runs the traffic backend alone (no sensors, no agents) for the scenario's duration and counts,
 in every frame from frame 0, the other CAVs whose centre is within `comm.range_m` of the first
@@ -24,7 +24,7 @@ import numpy as np
 from v2vsim.config import Scenario, load_scenario
 from v2vsim.traffic import make_backend
 
-SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
+SCENARIOS = Path(__file__).resolve().parents[2] / "scenarios"
 DEFAULT = ("intersection.yaml", "t_junction.yaml", "highway_intersection.yaml")
 
 
@@ -55,12 +55,12 @@ def seeds_arg(text: str) -> list[int]:
     return list(range(int(a), int(b or a) + 1))
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="v2vsim bench placement", description=__doc__.splitlines()[0])
     ap.add_argument("scenarios", nargs="*", default=[str(SCENARIOS / n) for n in DEFAULT])
     ap.add_argument("--seeds", type=seeds_arg, default=seeds_arg("0-19"))
     ap.add_argument("--set", action="append", default=[], dest="overrides")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     summary = []
     for path in args.scenarios:
         worst, worst_alive, t_total = 1.0, None, 0.0
@@ -87,7 +87,8 @@ def main() -> None:
     print("|---|---|---|---|")
     for name, worst, alive, per in summary:
         print(f"| {name} | {worst:.3f} | {alive} | {per:.2f} |")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -16,7 +16,7 @@ from v2vsim.config import Scenario
 from v2vsim.sensors.camera import CameraFrame, render_cameras
 from v2vsim.sensors.lidar import LidarSweep, lidar_sweep
 from v2vsim.sensors.scene import Scene
-from v2vsim.world import WorldState
+from v2vsim.world.state import WorldState
 
 
 @dataclass(frozen=True)

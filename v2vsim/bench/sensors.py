@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from v2vsim.config import BevConfig, CamerasConfig, LidarConfig
-from v2vsim.geometry import Pose
-from v2vsim.world import Actor, Building, StaticMap, WorldState
+from v2vsim.world.geometry import Pose
+from v2vsim.world.state import Actor, Building, StaticMap, WorldState
 
 LANE_W = 3.5
 ARM_M = 150.0
@@ -106,7 +106,7 @@ def save_previews(out: Path, world: WorldState, lidar_cfg: LidarConfig, cam_cfg:
     import matplotlib.pyplot as plt
     from PIL import Image
 
-    from v2vsim.gt import bev_ground_truth, visible_actor_ids
+    from v2vsim.evaluation.gt import bev_ground_truth, visible_actor_ids
     from v2vsim.sensors.camera import render_cameras
     from v2vsim.sensors.lidar import lidar_sweep
     from v2vsim.sensors.scene import build_map_assets, build_scene
@@ -169,7 +169,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=None, help="also write preview PNGs here")
     args = ap.parse_args(argv)
     # The sensors are plain numpy (single-threaded); torch is not imported here.
-    from v2vsim.gt import bev_ground_truth, gt_boxes
+    from v2vsim.evaluation.gt import bev_ground_truth, gt_boxes
     from v2vsim.sensors.camera import camera_rig, render_cameras
     from v2vsim.sensors.lidar import lidar_sweep
     from v2vsim.sensors.scene import build_map_assets, build_scene

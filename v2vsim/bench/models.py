@@ -2,7 +2,7 @@
 method for N = 1, 2, 4, 8 agents, the decoder + heads, and the tiny per-frame budget
 (PointPillars on one 32k-point sweep + warp + FuseBEVT over 4 agents, target < 50 ms).
 
-    python benchmarks/bench_models.py [--presets tiny,paper] [--repeats 5] [--json out.json]
+    v2vsim bench models [--presets tiny,paper] [--repeats 5] [--json out.json]
 
 Median of `repeats` timed runs after 2 warm-up runs, torch.no_grad, eval mode. Not a test: figures
 depend on the machine and its load.
@@ -114,13 +114,13 @@ def format_rows(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="v2vsim bench models", description=__doc__.splitlines()[0])
     ap.add_argument("--presets", default="tiny,paper")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--json", default=None, help="also write the rows as JSON here")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     rows: list[dict] = []
@@ -134,7 +134,8 @@ def main() -> None:
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(rows, fh, indent=1)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

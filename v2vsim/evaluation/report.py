@@ -13,7 +13,7 @@ from v2vsim.comm.stats import CommStats
 from v2vsim.comm.tr37885 import expected_delivery
 from v2vsim.comm.wire_spec import message_kind
 from v2vsim.config import ChannelConfig, Scenario
-from v2vsim.metrics import MethodScore, neighbour_shares
+from v2vsim.evaluation.metrics import MethodScore, neighbour_shares
 
 # CoBEVT paper figures (DESIGN.md "Reference figures"): OPV2V camera IoU vehicle/road/lane, LiDAR AP@0.7.
 PAPER_CAMERA = {"none": (37.7, 57.8, 43.7), "fcooper": (52.5, 60.4, 46.5), "attfuse": (51.9, 60.5, 46.2),

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from v2vsim.world import WorldState
+from v2vsim.world.state import WorldState
 
 THRESHOLD = 0.5
 

@@ -1,0 +1,69 @@
+"""The CAV side of perception: one CAV's sensor frame encoded into BEV features, and its own decoded
+outputs (the late-fusion message, the confidence a CAV ranks its cells by)."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from models.heads import decode_detections, segmentation_probabilities
+from v2vsim.config import Scenario
+from v2vsim.sensors.sensing import SensorFrame
+
+
+def encoder_inputs(sf: SensorFrame, sc: Scenario) -> list[Tensor] | tuple[Tensor, Tensor, Tensor]:
+    """A SensorFrame as the encoder takes it: body-frame points, or (images, intrinsics, extrinsics)."""
+    if sc.perception.modality == "lidar":
+        return [torch.from_numpy(body_frame_points(sf, sc))]
+    cams = sf.cameras
+    images = torch.from_numpy(cams.images).permute(0, 3, 1, 2).float().div(255.0)[None]  # [1, M, 3, h, w]
+    intr = torch.from_numpy(cams.rig.intrinsics).float()[None]
+    extr = torch.from_numpy(cams.rig.extrinsics).float()[None]
+    return images, intr, extr
+
+
+def body_frame_points(sf: SensorFrame, sc: Scenario) -> np.ndarray:
+    """LiDAR-frame points (origin at the sensor) moved to the body frame (origin on the ground)."""
+    pts = sf.lidar.points.copy()
+    pts[:, 2] += sc.sensors.lidar.height_m
+    return pts
+
+
+@torch.no_grad()
+def encode(encoder: nn.Module, sf: SensorFrame, sc: Scenario) -> np.ndarray:
+    """[C, F, F] float32 BEV features of one CAV in its own frame."""
+    if sc.perception.modality == "lidar":
+        return encode_points(encoder, body_frame_points(sf, sc))
+    return encoder(*encoder_inputs(sf, sc))[0].float().numpy()
+
+
+@torch.no_grad()
+def encode_points(encoder: nn.Module, points: np.ndarray) -> np.ndarray:
+    """A LiDAR encoder on one body-frame cloud [P, 4] -> [C, F, F] float32 features."""
+    return encoder([torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32))])[0].float().numpy()
+
+
+@torch.no_grad()
+def late_outputs(model: nn.Module, features: np.ndarray, boxes: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """A CAV's own decoded outputs for late fusion: probabilities [3, S, S] (vehicle, road, lane) and
+    boxes [K, 6] (x, y, l, w, yaw, score) in its body frame (none decoded with `boxes=False`: [0, 6])."""
+    out = model.heads(torch.from_numpy(np.ascontiguousarray(features, dtype=np.float32))[None])
+    probs = segmentation_probabilities(out["dynamic"], out["static"])
+    maps = np.stack([probs[k][0].numpy() for k in ("vehicle", "road", "lane")])
+    found = np.zeros((0, 6), np.float32)
+    if boxes and "det_cls" in out:
+        found = decode_detections(out["det_cls"], out["det_reg"], model.anchors)[0].numpy()
+    return maps.astype(np.float32), found.astype(np.float32)
+
+
+def pooled_confidence(p_vehicle: np.ndarray, cells: int) -> np.ndarray:
+    """A vehicle probability map [S, S] max-pooled to the feature grid [cells, cells]: what a CAV ranks its
+    feature cells by under comm.share topk (Where2comm's spatial confidence map, Eq. 2)."""
+    return torch.nn.functional.adaptive_max_pool2d(torch.from_numpy(p_vehicle)[None, None], cells)[0, 0].numpy()
+
+
+def vehicle_confidence(model: nn.Module, features: np.ndarray) -> np.ndarray:
+    """The single-agent heads' vehicle probability on features [C, F, F], pooled to [F, F] (pooled_confidence)."""
+    maps, _ = late_outputs(model, features, boxes=False)
+    return pooled_confidence(maps[0], features.shape[-1])

@@ -1,0 +1,92 @@
+"""The ego side of perception: what reached the ego for one frame, fused and decoded with one method
+(warp with each sender's capture pose, fuse, heads) into BEV probabilities and boxes on the ego grid."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from models.fusion.early import merge_points_to_ego
+from models.fusion.late import late_fuse_boxes, late_fuse_probabilities
+from models.heads import decode_detections, resize_logits, segmentation_probabilities
+from models.registry import is_intermediate
+
+
+class FusionInputs:
+    """What reached the ego for one frame, per sender (ego first), all in the sender's own frame."""
+
+    senders: list[str]
+    rel_poses: np.ndarray  # [L, 3] (dx, dy, dyaw) of each sender's capture pose in the ego's body frame
+    features: dict[str, np.ndarray] = field(default_factory=dict)  # sender -> [C, F, F]
+    points: dict[str, np.ndarray] = field(default_factory=dict)  # sender -> [P, 4] body frame
+    outputs: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # sender -> (maps, boxes)
+
+
+@dataclass(frozen=True)
+class Prediction:
+    probs: dict[str, np.ndarray]  # vehicle / road / lane [cells, cells] in the ego grid
+    boxes: np.ndarray | None  # [K, 6] (x, y, l, w, yaw, score) in the ego frame (LiDAR)
+    ms: float  # wall time of fusion + decoding
+    decode_ms: float = 0.0  # of which the decoder + heads (BEV maps and boxes from the fused features)
+
+
+def _stack(inp: FusionInputs, table: dict[str, np.ndarray]) -> tuple[list[str], Tensor]:
+    names = [s for s in inp.senders if s in table]
+    return names, torch.from_numpy(np.stack([table[s] for s in names]))
+
+
+def _poses(inp: FusionInputs, names: list[str]) -> Tensor:
+    idx = [inp.senders.index(s) for s in names]
+    return torch.from_numpy(inp.rel_poses[idx]).float()
+
+
+@torch.no_grad()
+def predict(method: str, model: nn.Module, inp: FusionInputs, cells: int) -> Prediction | None:
+    """Fuse and decode what reached the ego with one method; None when the method has no input
+    (e.g. the ego's own message is missing)."""
+    ego = inp.senders[0]
+    t0 = time.perf_counter()
+    if method == "late":
+        if ego not in inp.outputs:
+            return None
+        names = [s for s in inp.senders if s in inp.outputs]
+        maps = torch.from_numpy(np.stack([inp.outputs[s][0] for s in names]))  # [L, 3, S, S]
+        poses = _poses(inp, names)
+        valid = torch.ones(len(names), dtype=torch.bool)
+        merged = late_fuse_probabilities(maps, poses, valid, model.bev_size_m)  # [3, S, S]
+        merged = resize_logits(merged[None], cells)[0]
+        probs = {k: merged[i].numpy() for i, k in enumerate(("vehicle", "road", "lane"))}
+        boxes = None
+        if model.heads.detection is not None:
+            per = [torch.from_numpy(inp.outputs[s][1]) for s in names]
+            boxes = late_fuse_boxes(per, poses, valid, extent_m=model.bev_size_m).numpy()
+        return Prediction(probs, boxes, (time.perf_counter() - t0) * 1000)
+    if method == "early":
+        if ego not in inp.points:
+            return None
+        names = [s for s in inp.senders if s in inp.points]
+        clouds = [torch.from_numpy(inp.points[s]) for s in names]
+        merged = merge_points_to_ego(clouds, _poses(inp, names))
+        fused = model.encoder([merged])
+    else:
+        if ego not in inp.features:
+            return None
+        if method == "none" or not is_intermediate(method):
+            fused = torch.from_numpy(inp.features[ego])[None]
+        else:
+            names, feats = _stack(inp, inp.features)  # [L, C, F, F]
+            valid = torch.ones(1, len(names), dtype=torch.bool)
+            fused = model.fuse(feats[None], _poses(inp, names)[None], valid)
+    t_fused = time.perf_counter()
+    out = model.heads(fused)
+    dyn, stat = resize_logits(out["dynamic"], cells), resize_logits(out["static"], cells)
+    probs = {k: v[0].numpy() for k, v in segmentation_probabilities(dyn, stat).items()}
+    boxes = None
+    if "det_cls" in out:
+        boxes = decode_detections(out["det_cls"], out["det_reg"], model.anchors)[0].numpy()
+    t_end = time.perf_counter()
+    return Prediction(probs, boxes, (t_end - t0) * 1000, (t_end - t_fused) * 1000)
