@@ -16,6 +16,7 @@ from models.heads import decode_detections, resize_logits, segmentation_probabil
 from models.registry import is_intermediate
 
 
+@dataclass
 class FusionInputs:
     """What reached the ego for one frame, per sender (ego first), all in the sender's own frame."""
 

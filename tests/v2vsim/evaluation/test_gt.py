@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 
+from tests.v2vsim.sensors._worlds import car, rect, static_map, world
 from v2vsim.config import BevConfig, CamerasConfig, LidarConfig
 from v2vsim.evaluation.gt import bev_ground_truth, gt_boxes, rasterise_boxes, visible_actor_ids
 from v2vsim.sensors.camera import render_cameras
@@ -13,8 +14,6 @@ from v2vsim.sensors.lidar import lidar_sweep
 from v2vsim.sensors.scene import build_map_assets, build_scene
 from v2vsim.world.geometry import BevGrid
 from v2vsim.world.state import Building
-
-from .sensors._worlds import car, rect, static_map, world
 
 BEV = BevConfig()
 GRID = BevGrid(BEV.size_m, BEV.cells)
