@@ -11,7 +11,7 @@ import pytest
 
 from v2vsim.cli import main
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SCENARIO = str(REPO / "scenarios" / "intersection.yaml")
 
 

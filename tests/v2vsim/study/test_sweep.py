@@ -19,7 +19,7 @@ from v2vsim.study.grid import base_overrides, parse_axes, parse_axis, parse_seed
 from v2vsim.study.stats import interval, paired_clusters
 from v2vsim.study.sweep import SweepArgs, prepare, sweep
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 SCENARIO = REPO / "scenarios" / "intersection.yaml"
 CONTRACT_METRICS = ["iou_vehicle", "iou_vehicle_frame_mean", "iou_road", "iou_lane", "ap50", "ap70", "fusion_ms",
                     "bytes_per_frame"]
