@@ -28,7 +28,7 @@ from v2vsim.config import load_scenario  # noqa: E402
 from v2vsim.data.torch_dataset import CooperativeDataset  # noqa: E402
 from v2vsim.perception.build import build_agent_encoder, build_method_models  # noqa: E402
 from v2vsim.perception.fuse import predict  # noqa: E402
-from v2vsim.training.train import sample_fusion_inputs  # noqa: E402
+from v2vsim.training.validate import sample_fusion_inputs  # noqa: E402
 
 
 def main() -> None:

@@ -93,7 +93,8 @@ def _cmd_dataset(args: argparse.Namespace) -> int:
 
 def _cmd_train(args: argparse.Namespace) -> int:
     from v2vsim.data.layout import DatasetError
-    from v2vsim.training.train import TrainArgs, command_line, main_train
+    from v2vsim.training.stages import TrainArgs
+    from v2vsim.training.train import command_line, main_train
 
     overrides = {k: getattr(args, k) for k in ("epochs", "samples_per_epoch", "batch", "lr", "val_samples",
                                                "yaw_jitter_deg")

@@ -231,29 +231,29 @@ class DriverState(FakeBus):
 
 def test_the_ego_stops_by_itself_when_the_driver_dies(monkeypatch: pytest.MonkeyPatch) -> None:
     """What ego_loop's wait for the next world says, for each way the driver can go away."""
-    import agents.ego as ego_mod
+    import agents.ego_mailbox as mailbox
 
-    box = ego_mod.Mailbox()
+    box = mailbox.Mailbox()
     t0 = time.monotonic()
-    assert ego_mod._wait_world(box, DriverState(gone=True), 0, False) == "died"  # token gone, no bye
+    assert mailbox.wait_world(box, DriverState(gone=True), 0, False) == "died"  # token gone, no bye
     assert 0.9 < time.monotonic() - t0 < 3
     bye = {"name": "driver.main", "code": 143, "why": "stopped by signal 15"}
-    assert ego_mod._wait_world(box, DriverState(gone=True, bye=bye), 0, False) == "exit 143: stopped by signal 15"
+    assert mailbox.wait_world(box, DriverState(gone=True, bye=bye), 0, False) == "exit 143: stopped by signal 15"
     bye = {"name": "driver.main", "code": 130, "why": "stopped by signal 2"}  # Ctrl-C reached the driver first
-    assert ego_mod._wait_world(box, DriverState(gone=True, bye=bye), 0, False) == "interrupted"
-    ego_mod._set_done(box)
-    assert ego_mod._wait_world(box, DriverState(gone=False, authenticated=True), 0, False) == "done"  # verified
-    assert ego_mod._wait_world(box, DriverState(gone=True), 0, False) == "done"  # the driver finished and left
+    assert mailbox.wait_world(box, DriverState(gone=True, bye=bye), 0, False) == "interrupted"
+    mailbox.set_done(box)
+    assert mailbox.wait_world(box, DriverState(gone=False, authenticated=True), 0, False) == "done"  # verified
+    assert mailbox.wait_world(box, DriverState(gone=True), 0, False) == "done"  # the driver finished and left
     # without comm.auth a done is anyone's: while the driver lives, worlds still count ...
-    ego_mod._put_world(box, b'{"frame": 0}')
-    assert ego_mod._wait_world(box, DriverState(gone=False), 0, False) == (0, b'{"frame": 0}')
+    mailbox.put_world(box, b'{"frame": 0}')
+    assert mailbox.wait_world(box, DriverState(gone=False), 0, False) == (0, b'{"frame": 0}')
     # ... and the done is believed only after DONE_GRACE_S without a world, however old the done is
-    monkeypatch.setattr(ego_mod, "DONE_GRACE_S", 0.3)
+    monkeypatch.setattr(mailbox, "DONE_GRACE_S", 0.3)
     box.done_at = time.monotonic() - 10
-    ego_mod._put_world(box, b'{"frame": 1}')
-    assert ego_mod._wait_world(box, DriverState(gone=False), 1, False) == (1, b'{"frame": 1}')
+    mailbox.put_world(box, b'{"frame": 1}')
+    assert mailbox.wait_world(box, DriverState(gone=False), 1, False) == (1, b'{"frame": 1}')
     t0 = time.monotonic()
-    assert ego_mod._wait_world(box, DriverState(gone=False), 2, False) == "done"
+    assert mailbox.wait_world(box, DriverState(gone=False), 2, False) == "done"
     assert time.monotonic() - t0 >= 0.25
 
 
@@ -262,9 +262,9 @@ def test_side_channels_are_bounded_and_not_counted_as_v2v() -> None:
     messages, never show up in comm.rejected; an oversized V2V message is counted."""
     import struct
 
-    import agents.ego as ego_mod
+    import agents.ego_mailbox as mailbox
 
-    box = ego_mod.Mailbox({"features": 100, "vis": 50, "scan": 64})
+    box = mailbox.Mailbox({"features": 100, "vis": 50, "scan": 64})
     box.put("scan", "cav1", struct.pack("<q", 3) + b"x" * 100)
     box.put("scan", "cav1", struct.pack("<q", 3) + b"x" * 10)
     box.put("vis", "cav1", b"{" * 60)

@@ -25,180 +25,36 @@ import dataclasses
 import shlex
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from models import zoo
 from models.heads import AnchorTargetAssigner
-from models.losses import (
-    IGNORE_INDEX,
-    dense_focal_loss,
-    detection_loss,
-    dynamic_target,
-    segmentation_loss,
-    static_target,
-)
 from models.registry import MODALITY, build_cooperative
-from v2vsim.data.layout import DatasetError, runs_of
+from v2vsim.data.layout import runs_of
 from v2vsim.data.torch_dataset import CooperativeDataset, collate, tensor_inputs
-from v2vsim.evaluation.fuse_and_score import box_iou, fuse_and_score
-from v2vsim.evaluation.metrics import ApAccumulator, MethodScore
-from v2vsim.perception.encode import encode_points, late_outputs
-from v2vsim.perception.fuse import FusionInputs
 from v2vsim.training.augment import yaw_rotate_batch
 from v2vsim.training.cache import FeatureCache, build_feature_cache
+from v2vsim.training.losses import distill_loss, perception_loss
+from v2vsim.training.stages import (
+    SPECS,
+    StageSpec,
+    TrainArgs,
+    _prefixed,
+    build_stage_model,
+    load_stage_state,
+    stage_file,
+    stages_for,
+    state_to_save,
+    trainable,
+)
+from v2vsim.training.validate import validate
 
-FUSION_STAGES = ("attfuse", "fcooper", "v2vnet", "cobevt", "disconet")
-STAGE_ORDER = ("single", "cache", "none", "early", *FUSION_STAGES)
 CHECKPOINT_EVERY_S = 300.0
 CACHE_STRIDE = 1
-
-
-@dataclass(frozen=True)
-class StageSpec:
-    """What one stage trains and with which defaults (every field can be overridden by a flag)."""
-
-    name: str
-    methods: tuple[str, ...]  # zoo methods this stage's checkpoint serves
-    inputs: str  # "points" (encoder runs) | "cache" (frozen encoder features)
-    target: str  # "self" (own sensors' vehicles) | "coop" (vehicles any CAV saw)
-    epochs: int
-    samples_per_epoch: int
-    batch: int
-    lr: float
-    max_agents: int
-    delays: tuple[int, ...]
-    stride: int = 1  # use every stride-th frame (cache stages: the frames the feature cache holds)
-    val_samples: int = 120
-    distill_weight: float = 0.0
-    # Cross-entropy weight of the lane class: markings are ~2 cells wide and rare; unweighted they never
-    # reached p >= 0.5 in the single-agent stage (lane IoU 0), so every fine-tuning stage weights them.
-    lane_weight: float = 3.0
-    # Camera `single` stage: turn each sample's agent frame by U(-d, d) degrees (v2vsim.training.augment).
-    yaw_jitter_deg: float = 0.0
-
-
-SPECS: dict[str, StageSpec] = {
-    "single": StageSpec("single", (), "points", "self", 3, 1400, 4, 2e-3, 1, (0,), lane_weight=1.0),
-    # `none` (and `late`, whose CAVs run the same heads) get the fine-tuning every fusion method gets,
-    # on the same cached features, so that no method wins by training its heads longer.
-    "none": StageSpec("none", ("none", "late"), "cache", "self", 3, 1200, 4, 2e-3, 1, (0,)),
-    # Early fusion re-trains the encoder on merged clouds (~4x the points): the costliest stage per sample,
-    # but it sees as many samples as every other fine-tuning stage (3 x 1200).
-    "early": StageSpec("early", ("early",), "points", "coop", 3, 1200, 2, 1e-3, 5, (0, 1, 2)),
-    # Neighbours 0 or 1 frame old: a 27 Mbps link delivers feature messages one frame (100 ms) late.
-    **{m: StageSpec(m, (m,), "cache", "coop", 3, 1200, 4, 2e-3, 5, (0, 1)) for m in FUSION_STAGES},
-}
-# KL per cell starts near 0.1 here; weight 10 puts distillation on the scale of the perception losses
-# (1e3 made it ~100x them).
-SPECS["disconet"] = dataclasses.replace(SPECS["disconet"], distill_weight=10.0)
-
-
-@dataclass(frozen=True)
-class TrainArgs:
-    data: Path
-    stage: str
-    out: Path  # zoo root (manifest.json + <encoder>_<preset>/)
-    work: Path  # checkpoints, feature cache
-    encoder: str = "pointpillars"
-    preset: str = "tiny"
-    device: str = "cpu"
-    threads: int = 2
-    seed: int = 0
-    resume: bool = False
-    val_every: int = 1  # validate every N epochs and after the last
-    workers: int = 0  # DataLoader processes (0: load in the training process)
-    overrides: tuple[tuple[str, object], ...] = ()  # StageSpec fields from flags
-    command: str = ""
-
-
-# ---- losses --------------------------------------------------------------------------------------
-
-
-def perception_loss(out: dict[str, Tensor], batch: dict, target: str, assigner: AnchorTargetAssigner | None,
-                    lane_weight: float = 1.0) -> dict[str, Tensor]:
-    """Focal (dynamic) + CE (static; the lane class weighted by `lane_weight`) + anchor detection loss;
-    `target` "self" or "coop"."""
-    dev = out["dynamic"].device
-    vehicle = (batch["visible_self"] if target == "self" else batch["vehicle"]).to(dev)
-    ignore = batch["dynamic"].to(dev) & ~vehicle
-    static = static_target(batch["road"].to(dev), batch["lane"].to(dev))
-    if "outside" in batch:  # cells a yaw-augmented sample turned in from outside the recording
-        outside = batch["outside"].to(dev)
-        ignore = ignore | outside
-        static = static.masked_fill(outside, IGNORE_INDEX)
-    losses = {
-        "dyn": dense_focal_loss(out["dynamic"], dynamic_target(vehicle, ignore)),
-        "static": segmentation_loss(out["static"], static, torch.tensor([1.0, 1.0, lane_weight], device=dev)),
-    }
-    if assigner is not None and "det_cls" in out:
-        pos_key, hid_key = ("boxes_self", "boxes_self_hidden") if target == "self" else ("boxes", "boxes_hidden")
-        labels, regs = [], []
-        for pos, hid in zip(batch[pos_key], batch[hid_key], strict=True):
-            t = assigner(pos.to(dev))
-            h = assigner(hid.to(dev)).labels
-            lab = t.labels.clone()
-            lab[(h != 0) & (lab != 1)] = -1  # anchors on vehicles nobody saw: neither positive nor negative
-            labels.append(lab)
-            regs.append(t.reg)
-        losses["det"] = detection_loss(out["det_cls"], out["det_reg"], torch.stack(labels), torch.stack(regs))["total"]
-    losses["total"] = sum(losses.values())
-    return losses
-
-
-def distill_loss(student: Tensor, teacher: Tensor) -> Tensor:
-    """Mean per-cell KL(teacher || student) of the channel distributions, [B, C, F, F] each."""
-    kl = F.kl_div(F.log_softmax(student, dim=1), F.log_softmax(teacher, dim=1), log_target=True, reduction="none")
-    return kl.sum(dim=1).mean()
-
-
-# ---- models per stage ----------------------------------------------------------------------------
-
-
-def _prefixed(state: dict, prefix: str) -> dict:
-    return {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}
-
-
-def stage_file(args: TrainArgs, stage: str) -> Path:
-    return args.work / stage / "final.pt"
-
-
-def load_stage_state(args: TrainArgs, stage: str) -> dict:
-    p = stage_file(args, stage)
-    if not p.is_file():
-        raise DatasetError(f"{p}: stage {stage!r} has not finished; run `v2vsim train --stage {stage}` first")
-    return torch.load(p, map_location="cpu", weights_only=True)["state_dict"]
-
-
-def build_stage_model(args: TrainArgs, spec: StageSpec) -> nn.Module:
-    method = "none" if spec.name == "single" else spec.name
-    torch.manual_seed(args.seed)
-    model = build_cooperative(args.encoder, method, args.preset)
-    if spec.name != "single":
-        single = load_stage_state(args, "single")
-        model.encoder.load_state_dict(_prefixed(single, "encoder."))
-        model.heads.load_state_dict(_prefixed(single, "heads."))
-    return model
-
-
-def trainable(model: nn.Module, spec: StageSpec) -> list[nn.Parameter]:
-    if spec.inputs == "cache":
-        for p in model.encoder.parameters():
-            p.requires_grad_(False)
-        return [*model.fusion.parameters(), *model.heads.parameters()]
-    return list(model.parameters())
-
-
-def state_to_save(model: nn.Module, spec: StageSpec) -> dict:
-    parts = {"fusion": model.fusion, "heads": model.heads}
-    if spec.name in ("single", "early"):
-        parts["encoder"] = model.encoder
-    return {f"{p}.{k}": v for p, m in parts.items() for k, v in m.state_dict().items()}
 
 
 # ---- the loop ------------------------------------------------------------------------------------
@@ -243,59 +99,6 @@ class Progress:
         print(f"[{self.stage}] epoch {epoch + 1}/{epochs} step {done}/{self.total}  loss {parts}  "
               f"{rate:.1f} samples/s  ETA {left / 60:.1f} min", file=self.log, flush=True)
 
-
-def validate(spec: StageSpec, model: nn.Module, single: nn.Module, ds: CooperativeDataset,
-             cache: FeatureCache | None, n: int) -> dict[str, dict]:
-    """Metrics of the stage's methods on `n` validation samples (spread over the split), on the CPU: the
-    run's own prediction path (numpy in, numpy out). The models are moved back to their device after."""
-    dev = next(model.parameters()).device
-    model.cpu().eval()
-    single.cpu().eval()
-    models = {m: model for m in spec.methods} if spec.methods else {"none": model, "late": model}
-    idx = np.linspace(0, len(ds) - 1, min(n, len(ds))).round().astype(int)
-    try:
-        return evaluate_samples(models, single, ds, [int(i) for i in idx], cache)
-    finally:
-        model.to(dev)
-
-
-@torch.no_grad()
-def sample_fusion_inputs(s: dict, single: nn.Module, cache: FeatureCache | None = None, late: bool = True
-                         ) -> FusionInputs:
-    """A dataset sample as the ego's FusionInputs, as they arrive off the wire: features float16 (from
-    `single`'s encoder, or the cache), late outputs computed by each CAV from its float32 features
-    with `single`'s heads and shipped as float16 maps + float32 boxes, points float32."""
-    inp = FusionInputs(senders=list(s["agents"]), rel_poses=s["rel_poses"].numpy())
-    for j, (c, k) in enumerate(zip(s["agents"], s["agent_frames"], strict=True)):
-        if cache is not None:
-            feats = cache.get(s["key"].run, k, c).astype(np.float32)
-        elif s["images"]:  # [M, 3, h, w] uint8 -> the encoder's [1, M, 3, h, w] in [0, 1]
-            feats = single.encoder(s["images"][j][None].float().div(255.0), s["intrinsics"][j][None],
-                                   s["extrinsics"][j][None])[0].float().numpy()
-        else:
-            feats = encode_points(single.encoder, s["points"][j].numpy())
-        inp.features[c] = feats.astype(np.float16).astype(np.float32)
-        if s["points"]:
-            inp.points[c] = s["points"][j].numpy()
-        if late:
-            maps, boxes = late_outputs(single, feats)
-            inp.outputs[c] = (maps.astype(np.float16).astype(np.float32), boxes)
-    return inp
-
-
-@torch.no_grad()
-def evaluate_samples(models: dict[str, nn.Module], single: nn.Module, ds: CooperativeDataset, idx: list[int],
-                     cache: FeatureCache | None = None) -> dict[str, dict]:
-    """metrics.json-style scores of `models` on dataset samples, through the ego's own scoring
-    (v2vsim.evaluation.fuse_and_score.fuse_and_score) on `sample_fusion_inputs`."""
-    scores = {m: MethodScore(boxes=ApAccumulator()) for m in models}
-    for i in idx:
-        s = ds[i]
-        inp = sample_fusion_inputs(s, single, cache, late="late" in models)
-        gt = {"dynamic": s["dynamic"].numpy(), "visible": s["vehicle"].numpy(), "road": s["road"].numpy(),
-              "lane": s["lane"].numpy()}
-        fuse_and_score(models, inp, gt["road"].shape[0], gt, s["boxes"].numpy(), scores)
-    return {m: sc.to_json(box_iou) for m, sc in scores.items()}
 
 
 def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
@@ -449,14 +252,6 @@ def export(args: TrainArgs, spec: StageSpec, state: dict, history: list, wall_s:
     return path
 
 
-def stages_for(name: str, encoder: str = "pointpillars") -> list[str]:
-    if name == "all":
-        return [s for s in STAGE_ORDER if MODALITY[encoder] == "lidar" or s != "early"]
-    if name not in STAGE_ORDER:
-        raise ValueError(f"--stage {name!r}: allowed: all, {', '.join(STAGE_ORDER)}")
-    return [name]
-
-
 def main_train(args: TrainArgs, log=sys.stderr) -> int:
     for st in stages_for(args.stage, args.encoder):
         t0 = time.monotonic()
@@ -467,4 +262,3 @@ def main_train(args: TrainArgs, log=sys.stderr) -> int:
 
 def command_line(argv: list[str]) -> str:
     return "v2vsim train " + " ".join(shlex.quote(a) for a in argv)
-

@@ -1,5 +1,5 @@
 """One prediction path: validation during training and the ego of a run score the same recorded
-frames identically. Path A is `v2vsim.training.train.evaluate_samples` on the dataset; path B does
+frames identically. Path A is `v2vsim.training.validate.evaluate_samples` on the dataset; path B does
 what the CAV agents and the ego do: encode, ship through the real codec, rebuild the ego's inputs
 from the decoded headers (sender pose -> relative pose), and score with the ego's function."""
 
@@ -19,7 +19,7 @@ from v2vsim.evaluation.metrics import ApAccumulator, MethodScore
 from v2vsim.perception.build import decompress
 from v2vsim.perception.encode import encode_points, late_outputs
 from v2vsim.perception.fuse import FusionInputs
-from v2vsim.training.train import evaluate_samples
+from v2vsim.training.validate import evaluate_samples
 from v2vsim.world.geometry import Pose, relative_pose
 
 METHODS = ("none", "late", "early", "fcooper", "cobevt")

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from v2vsim.training.augment import rotate_masks, yaw_rotate_batch, yaw_rotation
-from v2vsim.training.train import perception_loss
+from v2vsim.training.losses import perception_loss
 from v2vsim.world.geometry import BevGrid
 
 

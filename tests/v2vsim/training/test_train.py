@@ -15,7 +15,9 @@ from models.heads import AnchorTargetAssigner
 from v2vsim.config import load_scenario
 from v2vsim.data.torch_dataset import CooperativeDataset, collate
 from v2vsim.perception.build import build_agent_encoder, build_method_models, method_checkpoints
-from v2vsim.training.train import SPECS, TrainArgs, build_stage_model, forward, perception_loss, run_stage
+from v2vsim.training.losses import perception_loss
+from v2vsim.training.stages import SPECS, TrainArgs, build_stage_model
+from v2vsim.training.train import forward, run_stage
 
 
 def _args(tiny_dataset, tmp_path, stage: str, **over) -> TrainArgs:
@@ -134,7 +136,7 @@ def test_camera_samples_round_trip_and_a_few_steps_lower_the_loss(camera_dataset
 
 
 def test_camera_stages_chain_into_a_zoo_a_camera_run_loads(camera_dataset, tmp_path) -> None:
-    from v2vsim.training.train import stages_for
+    from v2vsim.training.stages import stages_for
 
     assert "early" not in stages_for("all", "sinbevt") and "early" in stages_for("all", "pointpillars")
     log = io.StringIO()

@@ -11,7 +11,7 @@ import pytest
 
 from v2vsim.config import ConfigError, load_scenario
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 INTERSECTION = REPO / "scenarios" / "intersection.yaml"
 
 

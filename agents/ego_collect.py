@@ -1,0 +1,124 @@
+"""Message collection for one ego frame: decode the frame's messages, put them through the channel
+model and gather what is fusable; count every rejection, including those of messages never fused.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import numpy as np
+
+from agents.common import AgentArgs, Bus
+from agents.ego_mailbox import SIDE_KINDS, Mailbox
+from v2vsim.comm.inbox import Inbox, distance
+from v2vsim.comm.share import dense_payload
+from v2vsim.comm.stats import CommStats
+from v2vsim.comm.wire_spec import EgoDecoder, message_kind
+from v2vsim.perception.fuse import FusionInputs
+from v2vsim.recording.scan import Scan, decode_scan
+from v2vsim.world.geometry import Pose, relative_pose
+from v2vsim.world.state import WorldState
+
+
+def collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str], inboxes: dict[str, Inbox],
+             ego_poses: dict[int, Pose], decoder: EgoDecoder,
+             args: AgentArgs) -> tuple[FusionInputs, set[str], dict[str, Scan]]:
+    """Decode frame k's messages, pass them through the channel, and gather what is fusable now;
+    also the ids the CAVs saw (visible-vehicle ground truth) and their scans (for the recording)."""
+    realtime = args.scenario.transport.clock == "realtime"
+    now = world.time
+    with box.cond:
+        raw = {kind: box.raw.pop((kind, k), []) for kind in [*kinds, *SIDE_KINDS]}
+        # messages of earlier frames that came late (realtime, or a rogue sender): judged now
+        for (kind, f), table in list(box.raw.items()):
+            if f < k:
+                if kind in kinds:
+                    raw[kind] += table
+                del box.raw[(kind, f)]
+        unframed, box.unframed = box.unframed, []
+        early, box.rejected = box.rejected, []
+    for kind, reason in early:
+        _count_rejected(inboxes, kind, reason)
+    for kind, sender, data in unframed:
+        if kind in kinds:
+            decoder.receive(kind, data, sender, _stats_for(inboxes, kind))  # too short to be anything: counted
+    visible: set[str] = set()
+    for _sender, data in raw["vis"]:
+        try:
+            visible.update(str(i) for i in json.loads(data)["ids"])
+        except (ValueError, KeyError, TypeError):
+            pass  # ground-truth side channel between our own processes, not a V2V message
+    scans: dict[str, Scan] = {}
+    for sender, data in raw["scan"]:
+        try:
+            scans[sender] = decode_scan(data, sender, args.scenario)
+        except ValueError as e:
+            print(f"v2vsim-ego: frame {k}: {e}; not recorded", file=sys.stderr)
+    for kind in kinds:
+        for sender, data in raw[kind]:
+            msg = decoder.receive(kind, data, sender, _stats_for(inboxes, kind))
+            if msg is None:
+                inboxes[kind].mark_rejected(sender)
+                continue
+            ego_then = ego_poses.get(msg.frame, ego_poses[k])
+            send_time = now if realtime else msg.capture_time
+            inboxes[kind].offer(msg, len(data), send_time, distance(msg.sender_pose, ego_then.as_tuple()),
+                                receiver_pose=ego_then.as_tuple(), world=world)  # geometry for comm.channel tr37885
+    ego_pose = ego_poses[k]
+    fusable = {kind: inboxes[kind].ready(now) for kind in kinds}
+    senders = [me] + sorted({s for table in fusable.values() for s in table} - {me})
+    rel = np.zeros((len(senders), 3), np.float32)
+    inp = FusionInputs(senders=senders, rel_poses=rel)
+    for kind, table in fusable.items():
+        for s, msg in table.items():
+            i = senders.index(s)
+            x, y, z, yaw = inboxes[kind].sender_pose(msg)
+            rel[i] = relative_pose(ego_pose, Pose(x, y, z, yaw))
+            if kind == "features":
+                # float16 [C/r, F, F] (a sparse message scattered back); decompress() makes it float32 [C, F, F]
+                inp.features[s] = dense_payload(msg, decoder.spec["features"].payload)
+            elif kind == "points":
+                inp.points[s] = msg.payload.astype(np.float32)
+            else:
+                inp.outputs[s] = (msg.payload.astype(np.float32), msg.extras["boxes"].astype(np.float32))
+    return inp, visible, scans
+
+
+def control_rejections(bus: Bus, total: CommStats) -> CommStats:
+    """The control messages (done, world, vis, ...) the bus dropped, also counted in comm.rejected."""
+    control = CommStats()
+    for (_kind, reason), n in bus.control_rejections().items():
+        control.rejected_reasons[reason] += n
+        total.rejected_reasons[reason] += n
+    return control
+
+
+def reject_leftovers(box: Mailbox, kinds: list[str], inboxes: dict[str, Inbox], decoder: EgoDecoder) -> None:
+    """Messages never fused (e.g. claiming a frame the run never reached) still get validated and counted."""
+    with box.cond:
+        leftovers = [(kind, s, data) for (kind, _f), table in box.raw.items() if kind in kinds for s, data in table]
+        leftovers += [(kind, s, data) for kind, s, data in box.unframed if kind in kinds]
+        early, box.rejected = box.rejected, []
+        box.raw.clear()
+        box.unframed.clear()
+    for kind, reason in early:
+        _count_rejected(inboxes, kind, reason)
+    for kind, sender, data in leftovers:
+        decoder.receive(kind, data, sender, _stats_for(inboxes, kind))
+
+
+def _stats_for(inboxes: dict[str, Inbox], kind: str) -> list[CommStats]:
+    """Where a rejection of `kind` is counted: per kind, and every kind also in comm.rejected (the
+    features inbox's stats)."""
+    return [inboxes[kind].stats] + ([inboxes["features"].stats] if kind != "features" else [])
+
+
+def _count_rejected(inboxes: dict[str, Inbox], kind: str, reason: str) -> None:
+    for s in _stats_for(inboxes, kind):
+        s.record_rejected(reason)
+
+
+def bytes_for(method: str, inboxes: dict[str, Inbox]) -> int:
+    kind = message_kind(method)
+    return 0 if kind is None else inboxes[kind].bytes_this_frame

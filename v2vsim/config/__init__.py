@@ -1,0 +1,76 @@
+"""The scenario YAML (DESIGN.md "Scenario YAML"): typed schema, defaults, overrides, clear errors.
+
+A scenario is loaded once into frozen dataclasses (`Scenario`). Each field carries what is
+allowed; unknown keys, wrong types and out-of-range values raise `ConfigError` naming the
+file, the key path and what is allowed. Input paths are relative to the YAML file;
+`output.dir` is relative to the working directory.
+
+Modules (each imports only those above it):
+- `errors`: `ConfigError`;
+- `schema`: the frozen dataclasses (`Scenario` and every section), the field helpers and the constants
+  (`SEED_MAX`, `METHODS`, `ENCODERS_BY_MODALITY`);
+- `validate`: `_Loader`, which checks a raw mapping against the schema (types, ranges, unknown keys, paths);
+- `checks`: the checks across fields of a loaded scenario, and `check_output_dir`;
+- `load`: the strict YAML loader, `parse_override`, `apply_overrides`, `load_scenario`, `scenario_from_dict`.
+
+The public API is re-exported here: import it from `v2vsim.config`.
+"""
+
+from v2vsim.config.checks import check_output_dir
+from v2vsim.config.errors import ConfigError
+from v2vsim.config.load import apply_overrides, load_scenario, parse_override, scenario_from_dict
+from v2vsim.config.schema import (
+    ENCODERS_BY_MODALITY,
+    METHODS,
+    SEED_MAX,
+    AuthConfig,
+    BevConfig,
+    CamerasConfig,
+    CavsConfig,
+    ChannelConfig,
+    CommConfig,
+    DropConfig,
+    EvaluationConfig,
+    LatencyConfig,
+    LidarConfig,
+    MeetConfig,
+    OutputConfig,
+    PerceptionConfig,
+    PoseNoiseConfig,
+    Scenario,
+    SensorsConfig,
+    ShareConfig,
+    TrafficConfig,
+    TransportConfig,
+)
+
+__all__ = [
+    "ENCODERS_BY_MODALITY",
+    "METHODS",
+    "SEED_MAX",
+    "AuthConfig",
+    "BevConfig",
+    "CamerasConfig",
+    "CavsConfig",
+    "ChannelConfig",
+    "CommConfig",
+    "ConfigError",
+    "DropConfig",
+    "EvaluationConfig",
+    "LatencyConfig",
+    "LidarConfig",
+    "MeetConfig",
+    "OutputConfig",
+    "PerceptionConfig",
+    "PoseNoiseConfig",
+    "Scenario",
+    "SensorsConfig",
+    "ShareConfig",
+    "TrafficConfig",
+    "TransportConfig",
+    "apply_overrides",
+    "check_output_dir",
+    "load_scenario",
+    "parse_override",
+    "scenario_from_dict",
+]

@@ -1,0 +1,97 @@
+"""Checks across fields of a loaded scenario, and the output-directory check run before any process starts."""
+
+from __future__ import annotations
+
+import math
+import re
+import tempfile
+from pathlib import Path
+
+from v2vsim.config.errors import ConfigError
+from v2vsim.config.schema import ENCODERS_BY_MODALITY, Scenario
+from v2vsim.config.validate import _Loader
+
+
+def _check_cross_fields(sc: Scenario, loader: _Loader) -> None:
+    allowed = ENCODERS_BY_MODALITY[sc.perception.modality]
+    if sc.perception.encoder not in allowed:
+        loader.fail("perception.encoder",
+                    f"{sc.perception.encoder!r} does not take {sc.perception.modality} input; "
+                    f"allowed for modality {sc.perception.modality!r}: {', '.join(allowed)}")
+    if sc.traffic.backend == "sumo" and sc.traffic.net is None:
+        loader.fail("traffic.net", "required for backend 'sumo': a SUMO .net.xml relative to the YAML")
+    if isinstance(sc.cavs.ego, tuple) and not sc.cavs.ego:
+        loader.fail("cavs.ego", "an empty list; allowed: 'first', 'all' or a list of CAV ids")
+    if sc.comm.drop.model == "gilbert_elliott" and sc.comm.drop.p_bg == 0 and sc.comm.drop.p_gb > 0:
+        loader.fail("comm.drop.p_bg", "0 with p_gb > 0 never leaves the bad state; allowed: 0 < p_bg <= 1")
+    if sc.comm.medium == "shared" and sc.comm.bandwidth_mbps is None and sc.comm.channel.model != "tr37885":
+        loader.fail("comm.medium", "'shared' needs a data rate to share: set comm.bandwidth_mbps (e.g. 27) "
+                    "or comm.channel.model tr37885 (the MCS rate)")
+    if sc.comm.share.policy == "topk" and (sc.cavs.ego == "all" or (isinstance(sc.cavs.ego, tuple)
+                                                                      and len(sc.cavs.ego) > 1)):
+        loader.fail("comm.share.policy", "'topk' in a run needs one ego (cavs.ego: first or one id): an ego keeps "
+                    "its whole map, so its broadcast cannot serve other egos; v2vsim.env scores every CAV as a "
+                    "receiver")
+    if not math.isfinite(sc.duration_s * sc.rate_hz):
+        loader.fail("duration_s", f"{sc.duration_s:g} s at rate_hz {sc.rate_hz:g} is more frames than can be counted")
+    _check_egos(sc, loader)
+    _check_key_file(sc, loader)
+    for name in ("listen", "connect"):
+        for i, ep in enumerate(getattr(sc.transport, name)):
+            _check_endpoint(ep, f"transport.{name}[{i}]", loader)
+
+
+def _check_egos(sc: Scenario, loader: _Loader) -> None:
+    """An ego id that is no CAV of the run would leave the run without an ego (nothing fused, no report);
+    one listed twice would start two processes with the same name."""
+    if not isinstance(sc.cavs.ego, tuple):
+        return
+    ids = [f"cav{i}" for i in range(sc.cavs.count)]  # v2vsim.traffic.base.cav_id
+    allowed = ", ".join(ids) if len(ids) <= 4 else f"{ids[0]}..{ids[-1]}"
+    for i, ego in enumerate(sc.cavs.ego):
+        if ego not in ids:
+            loader.fail(f"cavs.ego[{i}]", f"{ego!r} is not a CAV of this run (cavs.count is {sc.cavs.count}); "
+                        f"allowed: {allowed}")
+        if ego in sc.cavs.ego[:i]:
+            loader.fail(f"cavs.ego[{i}]", f"{ego!r} is listed twice; each ego once")
+
+
+def _check_key_file(sc: Scenario, loader: _Loader) -> None:
+    """An empty key would turn signing on with a key anyone can sign with: refuse it here, in one line."""
+    path = sc.comm.auth.key_file
+    if path is None:
+        return
+    try:
+        key = Path(path).read_bytes()
+    except OSError as e:
+        loader.fail("comm.auth.key_file", f"cannot read {path}: {e.strerror or e}")
+    if not key.strip():  # the agents strip the key (agents/common.py read_key)
+        loader.fail("comm.auth.key_file", f"{path} is empty or only whitespace; allowed: a file holding a secret key")
+
+
+_ENDPOINT = re.compile(r"(?P<proto>[a-z][a-z0-9-]*)/(?P<addr>[^?#]+)(?:\?[^#]*)?(?:#.*)?")
+
+
+def _check_endpoint(ep: str, key: str, loader: _Loader) -> None:
+    """PROTO/HOST:PORT with a port zenoh and the OS accept (a bad one would otherwise surface as a
+    traceback or a baffling zenoh error in a child process)."""
+    m = _ENDPOINT.fullmatch(ep)
+    if not m:
+        loader.fail(key, f"got {ep!r}; allowed: a zenoh endpoint such as tcp/127.0.0.1:7447")
+    if m.group("proto") in ("tcp", "udp", "tls", "quic", "ws"):
+        host, sep, port = m.group("addr").rpartition(":")
+        if not sep or not host or not port.isdigit() or not 1 <= int(port) <= 65535:
+            loader.fail(key, f"got {ep!r}; allowed: {m.group('proto')}/HOST:PORT with a port 1..65535")
+
+
+def check_output_dir(path: Path, what: str) -> None:
+    """Create `path` and prove a file can be written there, so that a bad --out or output.dir fails
+    in one line before any process starts rather than in the ego at the end of the run."""
+    if path.exists() and not path.is_dir():
+        raise ConfigError(f"{what} {path}: is a file, not a directory")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=path, prefix=".v2vsim-write-check-"):
+            pass
+    except OSError as e:
+        raise ConfigError(f"{what} {path}: cannot write there: {(e.strerror or str(e)).lower()}") from None

@@ -1,0 +1,245 @@
+"""The scenario schema (DESIGN.md "Scenario YAML"): frozen dataclasses, one per YAML section, whose field
+metadata says what is allowed; the constants they use."""
+
+from __future__ import annotations
+
+import dataclasses
+import typing
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+SEED_MAX = 2**31 - 1  # SUMO (libsumo --seed) takes a signed 32-bit seed
+METHODS = ("none", "late", "early", "attfuse", "fcooper", "v2vnet", "disconet", "cobevt")
+ENCODERS_BY_MODALITY = {"lidar": ("pointpillars",), "camera": ("sinbevt", "lara")}
+
+
+# ---- field helpers: metadata says what is allowed -------------------------------------------
+
+
+def _f(default: Any, allowed: str = "", check: typing.Callable[[Any], bool] | None = None,
+       path: str | None = None) -> Any:
+    """A dataclass field with a range check. `path`: "file" (must exist) or "file?" (optional)."""
+    meta = {"allowed": allowed, "check": check, "path": path}
+    if isinstance(default, (list, dict)) or dataclasses.is_dataclass(default):
+        return field(default_factory=lambda: default, metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+def _pos(x: float) -> bool:
+    return x > 0
+
+
+def _nonneg(x: float) -> bool:
+    return x >= 0
+
+
+def _prob(x: float) -> bool:
+    return 0.0 <= x <= 1.0
+
+
+# ---- the schema ------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class TrafficConfig:
+    backend: Literal["sumo", "highway-env"] = "sumo"
+    net: str | None = _f(None, "path to a SUMO .net.xml, relative to the YAML", path="file?")
+    buildings: str | None = _f(None, "path to a SUMO .poly.xml, relative to the YAML", path="file?")
+    background_per_hour: float = _f(900.0, ">= 0", _nonneg)
+    warmup_s: float = _f(10.0, ">= 0 (background traffic runs this long before frame 0)", _nonneg)
+    building_height_m: tuple[float, float] = _f((8.0, 15.0), "[lo, hi] with 0 < lo <= hi",
+                                                lambda v: 0 < v[0] <= v[1])
+
+
+@dataclass(frozen=True)
+class MeetConfig:
+    """What CAV placement aims for (see v2vsim/traffic/sumo.py): at least `neighbours` other CAVs
+    within comm.range_m of the first ego in at least `share` of the frames, counted from frame 0."""
+
+    neighbours: int = _f(2, ">= 0 (capped at cavs.count - 1)", _nonneg)
+    share: float = _f(0.9, "0..1", _prob)
+    trials: int = _f(24, "1..200 (candidate placements simulated ahead; 1 = the first candidate only)",
+                     lambda v: 1 <= v <= 200)
+
+
+@dataclass(frozen=True)
+class CavsConfig:
+    count: int = _f(4, "1..16", lambda v: 1 <= v <= 16)
+    ego: str | tuple[str, ...] = _f("first", "'first', 'all' or a list of CAV ids",
+                                    lambda v: not isinstance(v, str) or v in ("first", "all"))
+    arrival_s: tuple[float, float] = _f((0.0, 4.0), "[lo, hi] with 0 <= lo <= hi <= 60 (seconds after frame 0 "
+                                        "at which the CAVs reach the junction at free-flow speed)",
+                                        lambda v: 0 <= v[0] <= v[1] <= 60)
+    meet: MeetConfig = field(default_factory=MeetConfig)
+
+
+@dataclass(frozen=True)
+class LidarConfig:
+    channels: int = _f(32, ">= 1", _pos)
+    points_per_channel: int = _f(1024, ">= 1", _pos)
+    range_m: float = _f(100.0, "> 0", _pos)
+    vertical_fov_deg: tuple[float, float] = _f((-25.0, 5.0), "[lo, hi] with -90 <= lo < hi <= 90",
+                                               lambda v: -90 <= v[0] < v[1] <= 90)
+    height_m: float = _f(1.9, "> 0", _pos)
+    noise_std_m: float = _f(0.02, ">= 0", _nonneg)
+    dropout: float = _f(0.0, "0..1", _prob)
+
+
+@dataclass(frozen=True)
+class CamerasConfig:
+    count: int = _f(4, "4 (front, right, left, back)", lambda v: v == 4)
+    fov_deg: float = _f(110.0, "0 < fov < 180", lambda v: 0 < v < 180)
+    width: int = _f(800, ">= 16", lambda v: v >= 16)
+    height: int = _f(600, ">= 16", lambda v: v >= 16)
+    render_scale: float = _f(0.25, "0 < scale <= 1", lambda v: 0 < v <= 1)
+    height_m: float = _f(1.6, "> 0 (mount height)", _pos)
+
+
+@dataclass(frozen=True)
+class SensorsConfig:
+    lidar: LidarConfig = field(default_factory=LidarConfig)
+    cameras: CamerasConfig = field(default_factory=CamerasConfig)
+
+
+@dataclass(frozen=True)
+class BevConfig:
+    size_m: float = _f(100.0, "> 0", _pos)
+    cells: int = _f(256, ">= 8", lambda v: v >= 8)
+
+
+@dataclass(frozen=True)
+class LatencyConfig:
+    mean: float = _f(0.0, ">= 0 (ms)", _nonneg)
+    jitter: float = _f(0.0, ">= 0 (ms, std of the distribution)", _nonneg)
+    distribution: Literal["normal", "uniform", "exponential"] = "normal"
+
+
+@dataclass(frozen=True)
+class DropConfig:
+    model: Literal["bernoulli", "gilbert_elliott"] = "bernoulli"
+    p: float = _f(0.0, "0..1", _prob)
+    p_gb: float = _f(0.0, "0..1 (good -> bad transition probability)", _prob)
+    p_bg: float = _f(1.0, "0..1 (bad -> good transition probability)", _prob)
+    loss_good: float = _f(0.0, "0..1", _prob)
+    loss_bad: float = _f(1.0, "0..1", _prob)
+
+
+@dataclass(frozen=True)
+class PoseNoiseConfig:
+    xy_std_m: float = _f(0.0, ">= 0", _nonneg)
+    yaw_std_deg: float = _f(0.0, ">= 0", _nonneg)
+
+
+@dataclass(frozen=True)
+class AuthConfig:
+    key_file: str | None = _f(None, "path to a secret key file, relative to the YAML", path="file?")
+
+
+@dataclass(frozen=True)
+class ChannelConfig:
+    """The radio channel (v2vsim/comm/tr37885.py). `disk`: delivered within comm.range_m, lost only by comm.drop.
+    `tr37885`: within comm.range_m, reception decided by the link budget over 3GPP TR 37.885 path loss with the
+    link state (los | nlos | nlosv) from the world's buildings and vehicles; serialisation at the MCS data rate
+    (capped by comm.bandwidth_mbps when that is lower). Defaults: TR 37.885 / IEEE 802.11p values (see tr37885.py)."""
+
+    model: Literal["disk", "tr37885"] = "disk"
+    scenario: Literal["urban", "highway"] = "urban"  # TR 37.885 Table 6.2.1-1 LOS formula and decorrelation distance
+    carrier_ghz: float = _f(5.9, "0.5..100 (GHz)", lambda v: 0.5 <= v <= 100)
+    tx_power_dbm: float = _f(23.0, "-50..60 (dBm)", lambda v: -50 <= v <= 60)
+    antenna_gain_dbi: float = _f(3.0, "-30..30 (dBi, each of the two antennas)", lambda v: -30 <= v <= 30)
+    noise_figure_db: float = _f(9.0, "0..30 (dB)", lambda v: 0 <= v <= 30)
+    bandwidth_mhz: float = _f(10.0, "5, 10 or 20 (MHz, an IEEE 802.11 OFDM channel width)", lambda v: v in (5, 10, 20))
+    mcs: int = _f(2, "0..7 (IEEE 802.11p MCS: BPSK 1/2 .. 64-QAM 3/4)", lambda v: 0 <= v <= 7)
+    antenna_height_m: float = _f(1.5, "> 0 (m above each vehicle's pose.z)", _pos)
+    per_slope_db: float = _f(1.0, ">= 0 (dB; logistic packet-error slope, 0 = a hard SNR threshold)", _nonneg)
+
+
+@dataclass(frozen=True)
+class ShareConfig:
+    """What each CAV sends of its BEV features (v2vsim/comm/sparse.py). `all`: the whole map. `topk`: the `fraction`
+    of its feature cells that its own single-agent vehicle confidence ranks highest (Where2comm's spatial
+    confidence, Eq. 2), as a sparse message of indices + values, or the whole map where that is no larger."""
+
+    policy: Literal["all", "topk"] = "all"
+    fraction: float = _f(1.0, "0..1 (share of the BEV feature cells sent)", _prob)
+
+
+@dataclass(frozen=True)
+class CommConfig:
+    range_m: float = _f(70.0, "> 0", _pos)
+    latency_ms: LatencyConfig = field(default_factory=LatencyConfig)
+    drop: DropConfig = field(default_factory=DropConfig)
+    bandwidth_mbps: float | None = _f(27.0, "> 0 or null (unlimited)", _pos)
+    max_age_ms: float = _f(500.0, "> 0", _pos)
+    pose_noise: PoseNoiseConfig = field(default_factory=PoseNoiseConfig)
+    compression: Literal["none", "zlib"] = "none"
+    channel_compression: int = _f(1, "1 (off) or a reduction ratio such as 8, 16, 32, 64", _pos)
+    auth: AuthConfig = field(default_factory=AuthConfig)
+    channel: ChannelConfig = field(default_factory=ChannelConfig)
+    # per_link: every (sender, receiver) link has its own data rate; shared: one broadcast channel for every
+    # CAV, one transmission at a time, with its busy ratio measured (v2vsim/comm/medium.py)
+    medium: Literal["per_link", "shared"] = "per_link"
+    share: ShareConfig = field(default_factory=ShareConfig)
+
+
+@dataclass(frozen=True)
+class TransportConfig:
+    mode: Literal["peer", "client"] = "peer"  # peer: a loopback mesh; client: through transport.connect routers
+    connect: tuple[str, ...] = _f((), "zenoh endpoints such as tcp/127.0.0.1:7447")
+    listen: tuple[str, ...] = _f((), "zenoh endpoints; empty = a free loopback port")
+    clock: Literal["lockstep", "realtime"] = "lockstep"
+    # lockstep: frames the driver and CAVs may run ahead of the slowest ego (0 = strict lockstep);
+    # results are the same for any value, only the wall time changes.
+    pipeline: int = _f(2, "an integer 0..16", lambda v: 0 <= v <= 16)
+
+
+@dataclass(frozen=True)
+class PerceptionConfig:
+    modality: Literal["lidar", "camera"] = "lidar"
+    encoder: Literal["pointpillars", "sinbevt", "lara"] = "pointpillars"
+    preset: Literal["tiny", "paper"] = "tiny"
+    methods: tuple[str, ...] = _f(METHODS, f"a non-empty list of {', '.join(METHODS)}",
+                                  lambda v: len(v) > 0 and all(m in METHODS for m in v))
+    weights: str = _f("auto", "'auto', 'none' or a checkpoint path")
+
+
+@dataclass(frozen=True)
+class EvaluationConfig:
+    # How AP ranks detections: 'global' sorts every detection of the run by score (OpenCOOD's
+    # --global_sort_detections, the DESIGN.md default); 'per_frame' keeps frame order and sorts
+    # only within each frame (OpenCOOD's default, which most published AP tables use).
+    ap_sort: Literal["global", "per_frame"] = "global"
+
+
+@dataclass(frozen=True)
+class OutputConfig:
+    dir: str = "runs/intersection"
+    rerun: bool = True
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str = "scenario"
+    seed: int = _f(0, f"0..{SEED_MAX}", lambda v: 0 <= v <= SEED_MAX)
+    duration_s: float = _f(20.0, "> 0", _pos)
+    rate_hz: float = _f(10.0, "> 0", _pos)
+    traffic: TrafficConfig = field(default_factory=TrafficConfig)
+    cavs: CavsConfig = field(default_factory=CavsConfig)
+    sensors: SensorsConfig = field(default_factory=SensorsConfig)
+    bev: BevConfig = field(default_factory=BevConfig)
+    comm: CommConfig = field(default_factory=CommConfig)
+    transport: TransportConfig = field(default_factory=TransportConfig)
+    perception: PerceptionConfig = field(default_factory=PerceptionConfig)
+    evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
+    source: str = field(default="<defaults>", metadata={"internal": True})  # the YAML file
+    overrides: tuple[str, ...] = field(default=(), metadata={"internal": True})  # --set, for child processes
+
+    @property
+    def frames(self) -> int:
+        return max(1, round(self.duration_s * self.rate_hz))
+
+    @property
+    def dt(self) -> float:
+        return 1.0 / self.rate_hz
+

@@ -1,0 +1,128 @@
+"""Training stages: what each stage trains and with which defaults (StageSpec, SPECS), the arguments of a
+training run (TrainArgs), and each stage's model: built from the `single` stage, frozen where it runs on cached
+features, saved and loaded as a checkpoint under --work."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from models.registry import MODALITY, build_cooperative
+from v2vsim.data.layout import DatasetError
+
+FUSION_STAGES = ("attfuse", "fcooper", "v2vnet", "cobevt", "disconet")
+STAGE_ORDER = ("single", "cache", "none", "early", *FUSION_STAGES)
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """What one stage trains and with which defaults (every field can be overridden by a flag)."""
+
+    name: str
+    methods: tuple[str, ...]  # zoo methods this stage's checkpoint serves
+    inputs: str  # "points" (encoder runs) | "cache" (frozen encoder features)
+    target: str  # "self" (own sensors' vehicles) | "coop" (vehicles any CAV saw)
+    epochs: int
+    samples_per_epoch: int
+    batch: int
+    lr: float
+    max_agents: int
+    delays: tuple[int, ...]
+    stride: int = 1  # use every stride-th frame (cache stages: the frames the feature cache holds)
+    val_samples: int = 120
+    distill_weight: float = 0.0
+    # Cross-entropy weight of the lane class: markings are ~2 cells wide and rare; unweighted they never
+    # reached p >= 0.5 in the single-agent stage (lane IoU 0), so every fine-tuning stage weights them.
+    lane_weight: float = 3.0
+    # Camera `single` stage: turn each sample's agent frame by U(-d, d) degrees (v2vsim.training.augment).
+    yaw_jitter_deg: float = 0.0
+
+
+SPECS: dict[str, StageSpec] = {
+    "single": StageSpec("single", (), "points", "self", 3, 1400, 4, 2e-3, 1, (0,), lane_weight=1.0),
+    # `none` (and `late`, whose CAVs run the same heads) get the fine-tuning every fusion method gets,
+    # on the same cached features, so that no method wins by training its heads longer.
+    "none": StageSpec("none", ("none", "late"), "cache", "self", 3, 1200, 4, 2e-3, 1, (0,)),
+    # Early fusion re-trains the encoder on merged clouds (~4x the points): the costliest stage per sample,
+    # but it sees as many samples as every other fine-tuning stage (3 x 1200).
+    "early": StageSpec("early", ("early",), "points", "coop", 3, 1200, 2, 1e-3, 5, (0, 1, 2)),
+    # Neighbours 0 or 1 frame old: a 27 Mbps link delivers feature messages one frame (100 ms) late.
+    **{m: StageSpec(m, (m,), "cache", "coop", 3, 1200, 4, 2e-3, 5, (0, 1)) for m in FUSION_STAGES},
+}
+# KL per cell starts near 0.1 here; weight 10 puts distillation on the scale of the perception losses
+# (1e3 made it ~100x them).
+SPECS["disconet"] = dataclasses.replace(SPECS["disconet"], distill_weight=10.0)
+
+
+@dataclass(frozen=True)
+class TrainArgs:
+    data: Path
+    stage: str
+    out: Path  # zoo root (manifest.json + <encoder>_<preset>/)
+    work: Path  # checkpoints, feature cache
+    encoder: str = "pointpillars"
+    preset: str = "tiny"
+    device: str = "cpu"
+    threads: int = 2
+    seed: int = 0
+    resume: bool = False
+    val_every: int = 1  # validate every N epochs and after the last
+    workers: int = 0  # DataLoader processes (0: load in the training process)
+    overrides: tuple[tuple[str, object], ...] = ()  # StageSpec fields from flags
+    command: str = ""
+
+
+# ---- models per stage ----------------------------------------------------------------------------
+
+
+def _prefixed(state: dict, prefix: str) -> dict:
+    return {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}
+
+
+def stage_file(args: TrainArgs, stage: str) -> Path:
+    return args.work / stage / "final.pt"
+
+
+def load_stage_state(args: TrainArgs, stage: str) -> dict:
+    p = stage_file(args, stage)
+    if not p.is_file():
+        raise DatasetError(f"{p}: stage {stage!r} has not finished; run `v2vsim train --stage {stage}` first")
+    return torch.load(p, map_location="cpu", weights_only=True)["state_dict"]
+
+
+def build_stage_model(args: TrainArgs, spec: StageSpec) -> nn.Module:
+    method = "none" if spec.name == "single" else spec.name
+    torch.manual_seed(args.seed)
+    model = build_cooperative(args.encoder, method, args.preset)
+    if spec.name != "single":
+        single = load_stage_state(args, "single")
+        model.encoder.load_state_dict(_prefixed(single, "encoder."))
+        model.heads.load_state_dict(_prefixed(single, "heads."))
+    return model
+
+
+def trainable(model: nn.Module, spec: StageSpec) -> list[nn.Parameter]:
+    if spec.inputs == "cache":
+        for p in model.encoder.parameters():
+            p.requires_grad_(False)
+        return [*model.fusion.parameters(), *model.heads.parameters()]
+    return list(model.parameters())
+
+
+def state_to_save(model: nn.Module, spec: StageSpec) -> dict:
+    parts = {"fusion": model.fusion, "heads": model.heads}
+    if spec.name in ("single", "early"):
+        parts["encoder"] = model.encoder
+    return {f"{p}.{k}": v for p, m in parts.items() for k, v in m.state_dict().items()}
+
+
+def stages_for(name: str, encoder: str = "pointpillars") -> list[str]:
+    if name == "all":
+        return [s for s in STAGE_ORDER if MODALITY[encoder] == "lidar" or s != "early"]
+    if name not in STAGE_ORDER:
+        raise ValueError(f"--stage {name!r}: allowed: all, {', '.join(STAGE_ORDER)}")
+    return [name]
