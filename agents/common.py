@@ -4,7 +4,7 @@ Topology: with transport.mode "peer" (default) every process of a run listens on
 loopback port and connects to every other one: a full mesh of zenoh peers, no broker, as V2V
 is. Peers do not forward for each other with gossip off, hence the mesh. With transport.mode
 "client" every process connects to the zenoh router(s) in transport.connect (`v2vsim router`),
-which is how agents on other hosts join a run (README "Across hosts").
+which is how agents on other hosts join a run (docs/cluster.md).
 Keys: v2vsim/<run>/<kind>/<sender> (v2vsim.comm.transport).
 
 Liveliness: each process declares a token v2vsim/<run>/alive/<role>.<id>; zenoh withdraws it

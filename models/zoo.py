@@ -79,7 +79,7 @@ def rebuild_command(path: Path, entry: dict) -> str:
     whole = REBUILD_ZOO.get(encoder, REBUILD)
     flag = "" if encoder == "pointpillars" else f" --encoder {encoder}"
     return whole + (f" (this stage alone: v2vsim train --data DATA{flag} --stage {stage} --out {path.parent.parent}; "
-                    f"README 'Training')" if stage else " (README 'Training')")
+                    f"docs/training.md)" if stage else " (docs/training.md)")
 
 
 def load_checkpoint(path: Path, entry: dict) -> dict:

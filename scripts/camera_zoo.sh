@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Rebuild the camera model zoo from scratch (README "Training", camera track): record the dataset with
+# Rebuild the camera model zoo from scratch (docs/training.md, camera track): record the dataset with
 # cameras, then train every SinBEVT stage and LaRa's `none` and `cobevt` into models/weights/. Each step
 # resumes where it stopped if re-run.
 #   scripts/camera_zoo.sh [DATA_DIR] [WORK_DIR] [ZOO_DIR]
@@ -12,7 +12,7 @@ V=${V2VSIM:-v2vsim}
 # "visible" means seen by a camera: the dataset's visibility masks follow the cameras, not the LiDAR.
 scripts/zoo_data.sh "$DATA" 10 --cameras --set perception.modality=camera --set perception.encoder=sinbevt
 # A camera zoo has no `early` stage (early fusion ships LiDAR points); DiscoNet trains without its teacher.
-# The single-agent stages run 6 epochs (3 left them short of convergence: README "The camera track").
+# The single-agent stages run 6 epochs (3 left them short of convergence: docs/training.md, "The camera track").
 $V train --data "$DATA" --encoder sinbevt --stage single --epochs 6 --out "$ZOO" --work "$WORK/sinbevt" --resume
 for stage in cache none cobevt v2vnet attfuse fcooper disconet; do
   $V train --data "$DATA" --encoder sinbevt --stage $stage --out "$ZOO" --work "$WORK/sinbevt" --resume

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Evaluate the shipped camera zoo on held-out seeds (never used in training or validation):
 # scenarios/intersection_camera.yaml and the T-junction with the same camera settings,
-# SinBEVT (every method) and LaRa (none, late, cobevt), 200 frames. Prints the tables of README "Results".
+# SinBEVT (every method) and LaRa (none, late, cobevt), 200 frames. Prints the tables of docs/results.md.
 #   scripts/eval_camera_zoo.sh [OUT_DIR] [SEEDS...]      (defaults: runs/eval_camera, seeds 0 1)
 # CHANNELS="ideal default" (the default: ideal only) adds the channel as shipped (27 Mbps: one frame late);
 # ENCODERS="sinbevt" (the default: "sinbevt lara") evaluates one encoder.

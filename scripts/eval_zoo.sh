@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Evaluate the shipped zoo on held-out seeds (never used in training or validation): both shipped
 # SUMO scenarios, the channel as shipped (27 Mbps: feature messages one frame late) and the ideal
-# channel (no bandwidth limit), 200 frames, all methods. Prints the table of README "Results".
+# channel (no bandwidth limit), 200 frames, all methods. Prints the table of docs/results.md.
 #   scripts/eval_zoo.sh [OUT_DIR] [SEEDS...]      (defaults: runs/eval, seeds 0 1)
 set -euo pipefail
 cd "$(dirname "$0")/.."

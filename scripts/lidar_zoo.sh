@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Rebuild the LiDAR model zoo from scratch (README "Training"): record the dataset, then train every
+# Rebuild the LiDAR model zoo from scratch (docs/training.md): record the dataset, then train every
 # stage into models/weights/. Each step resumes where it stopped if re-run.
 #   scripts/lidar_zoo.sh [DATA_DIR] [WORK_DIR] [ZOO_DIR]
 set -euo pipefail

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Record a zoo's dataset (README "Training"): both shipped networks, train seeds 100.. at four traffic
+# Record a zoo's dataset (docs/training.md): both shipped networks, train seeds 100.. at four traffic
 # densities (150 frames each), val seeds 90-91 (100 frames each); disjoint from the evaluation seeds 0-89.
 #   scripts/zoo_data.sh DATA_DIR [N_TRAIN_SEEDS] [dataset flags...]
 # N_TRAIN_SEEDS per network (default 10: seeds 100-109 as 3/3/2/2 at 600/900/1200/1500 veh/h).

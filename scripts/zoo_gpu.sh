@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Train a zoo on a CUDA machine that has no SUMO (README "Training on a GPU"): the traffic is recorded
+# Train a zoo on a CUDA machine that has no SUMO (docs/training.md): the traffic is recorded
 # where SUMO is (`scripts/zoo_data.sh DATA N --traffic-only [FLAGS]`), copied over, sensed here in
 # parallel, then every stage trains with --device cuda. Resumable: re-run to continue.
 #   scripts/zoo_gpu.sh DATA WORK ZOO ENCODER N "FLAGS" STAGE...
@@ -13,7 +13,7 @@ JOBS=${JOBS:-$(nproc)}
 WORKERS=${WORKERS:-10}
 # shellcheck disable=SC2086
 V2VSIM="$V" scripts/zoo_data.sh "$DATA" "$N" --jobs "$JOBS" $FLAGS
-# GPU recipe (README "Training on a GPU machine without SUMO"): more data and samples than the CPU recipe, batch 8.
+# GPU recipe (docs/training.md, "Training on a GPU machine without SUMO"): more data and samples than the CPU recipe, batch 8.
 for stage in "$@"; do
   case $stage in
     single) extra="--epochs 8 --samples-per-epoch 3000 --batch 8 --val-every 2" ;;

@@ -1,4 +1,4 @@
-"""Summarise `v2vsim run` outputs into the zoo's comparison table (README "Results").
+"""Summarise `v2vsim run` outputs into the zoo's comparison table (docs/results.md).
 
     python scripts/zoo_table.py RUN_DIR [RUN_DIR ...]
 

@@ -231,7 +231,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_dataset)
 
     p = sub.add_parser("train", help="train a model zoo (LiDAR, or camera with --encoder), stage by stage "
-                                     "(README 'Training')")
+                                     "(docs/training.md)")
     p.add_argument("--data", required=True, help="dataset directory written by `v2vsim dataset`")
     p.add_argument("--stage", default="all",
                    help="all | single | cache | early | attfuse | fcooper | v2vnet | cobevt | disconet")

@@ -1,2 +1,2 @@
-"""`v2vsim train`: stages of the LiDAR zoo (README "Training"): the single-agent model, a cache of
+"""`v2vsim train`: stages of the LiDAR zoo (docs/training.md): the single-agent model, a cache of
 its frozen encoder's features, early fusion, and every intermediate fusion method on the cache."""

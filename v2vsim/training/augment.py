@@ -1,7 +1,7 @@
 """Yaw augmentation of camera training samples: the same scene seen by an agent turned about its vertical axis.
 
 A camera model learns where things are from the extrinsics, but the targets of a dataset recorded in lanes
-almost always show the agent's road straight ahead, and the model learns that as a prior (README, camera
+almost always show the agent's road straight ahead, and the model learns that as a prior (docs/results.md, camera
 track: a lane-changing ego gets its road drawn straight while the ground truth is tilted). Turning the agent
 frame by theta is exact for cameras: each camera-to-agent extrinsic becomes R_z(theta) E, and each BEV target
 is rotated by the same theta. Cells whose source lies outside the recorded grid are marked "outside" and
