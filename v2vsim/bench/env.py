@@ -77,7 +77,3 @@ def main(argv: list[str] | None = None) -> int:
         with open(a.json, "w") as f:
             json.dump(results, f, indent=1)
     return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

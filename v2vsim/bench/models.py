@@ -135,7 +135,3 @@ def main(argv: list[str] | None = None) -> int:
         with open(args.json, "w") as fh:
             json.dump(rows, fh, indent=1)
     return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -88,7 +88,3 @@ def main(argv: list[str] | None = None) -> int:
     for name, worst, alive, per in summary:
         print(f"| {name} | {worst:.3f} | {alive} | {per:.2f} |")
     return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -101,7 +101,3 @@ def main(argv: list[str] | None = None) -> int:
             Path(a.json).write_text(json.dumps({"rows": rows, "split": {
                 str(p): dict(split_table(r)) for p, r in results.items()}}, indent=1))
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -207,7 +207,3 @@ def main(argv: list[str] | None = None) -> int:
         for p in save_previews(args.out, world, lidar_cfg, cam_cfg, bev, cav):
             print(f"  wrote {p}")
     return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
