@@ -11,11 +11,13 @@ import numpy as np
 
 from agents.common import AgentArgs, Bus
 from agents.ego_mailbox import SIDE_KINDS, Mailbox
+from v2vsim.comm.codec import Message
 from v2vsim.comm.inbox import Inbox, distance
 from v2vsim.comm.share import dense_payload
 from v2vsim.comm.stats import CommStats
 from v2vsim.comm.wire_spec import EgoDecoder, message_kind
 from v2vsim.perception.fuse import FusionInputs
+from v2vsim.perception.motion import OutputMessage, compensate_outputs
 from v2vsim.recording.scan import Scan, decode_scan
 from v2vsim.world.geometry import Pose, relative_pose
 from v2vsim.world.state import WorldState
@@ -66,7 +68,10 @@ def collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str], 
             inboxes[kind].offer(msg, len(data), send_time, distance(msg.sender_pose, ego_then.as_tuple()),
                                 receiver_pose=ego_then.as_tuple(), world=world)  # geometry for comm.channel tr37885
     ego_pose = ego_poses[k]
-    fusable = {kind: inboxes[kind].ready(now) for kind in kinds}
+    compensate = args.scenario.comm.compensation == "on"
+    # fuse at the deadline, as of the frame's capture instant: a message of frame k that arrived by then is aligned
+    deadline = now + args.scenario.comm.fusion_deadline_ms / 1000.0
+    fusable = {kind: inboxes[kind].ready(deadline, as_of=now) for kind in kinds}
     senders = [me] + sorted({s for table in fusable.values() for s in table} - {me})
     rel = np.zeros((len(senders), 3), np.float32)
     inp = FusionInputs(senders=senders, rel_poses=rel)
@@ -82,7 +87,24 @@ def collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str], 
                 inp.points[s] = msg.payload.astype(np.float32)
             else:
                 inp.outputs[s] = (msg.payload.astype(np.float32), msg.extras["boxes"].astype(np.float32))
+                if compensate and s != me:
+                    inp.outputs[s] = _moved_outputs(inp.outputs[s], msg, (x, y, z, yaw), inboxes[kind].previous(s),
+                                                    now - msg.capture_time, args.scenario.bev.size_m)
     return inp, visible, scans
+
+
+def _moved_outputs(outputs: tuple[np.ndarray, np.ndarray], msg: Message, pose: tuple[float, ...],
+                   prev: Message | None, age_s: float, bev_size_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """comm.compensation on, late fusion: a neighbour's maps and boxes moved by each object's velocity from its
+    two latest output messages (v2vsim.perception.motion). The older message's pose gets the same pose error as
+    the newer one (a receiver's error in a sender's pose changes little within a few frames)."""
+    if prev is None:
+        return outputs
+    err = np.subtract(pose, msg.sender_pose)
+    prev_pose = tuple(float(v) for v in np.add(prev.sender_pose, err))
+    old = OutputMessage(prev.payload.astype(np.float32), prev.extras["boxes"].astype(np.float32), prev_pose,
+                        prev.capture_time)
+    return compensate_outputs(OutputMessage(*outputs, pose, msg.capture_time), old, age_s, bev_size_m=bev_size_m)
 
 
 def control_rejections(bus: Bus, total: CommStats) -> CommStats:

@@ -6,10 +6,17 @@
            "encoder": "single.pt",             # the encoder every CAV runs (single-agent stage)
            "methods": {"none": "none.pt", "late": "none.pt", "cobevt": "cobevt.pt", ...},
            "files": {"cobevt.pt": {"sha256": ..., "bytes": ..., "stage": ..., "command": ...,
-                                   "data": {...}, "wall_s": ..., "validation": {...}}, ...}}}}
+                                   "data": {...}, "wall_s": ..., "validation": {...}}, ...},
+           "extrapolation": {"cobevt": "cobevt_extrapolate.pt"}}}}   # optional
+
+"extrapolation" (optional; the `extrapolate` training stage): per method, a receiver-side latency
+compensation module (models.extrapolation) trained on top of that method's checkpoint. It is an add-on,
+not a method: "methods" still names each method's own file, and the add-on's file is listed in "files"
+(stage "extrapolate") and verified like every other.
 
 A checkpoint file is a dict {"format": "v2vsim-weights", "encoder", "preset", "stage", "methods",
-"config", "state_dict"}; state_dict keys are prefixed "encoder.", "fusion.", "heads.".
+"config", "state_dict"}; state_dict keys are prefixed "encoder.", "fusion.", "heads." (an extrapolation
+add-on's: "extrapolation.").
 Every file is checked against its sha256 before it is loaded.
 """
 
@@ -72,6 +79,12 @@ def method_file(entry: dict, method: str, root: Path, encoder: str, preset: str)
     return None if name is None else root / zoo_name(encoder, preset) / name
 
 
+def extrapolation_file(entry: dict, method: str, root: Path, encoder: str, preset: str) -> Path | None:
+    """The latency-compensation add-on of `method` (models.extrapolation), None if the zoo has none."""
+    name = (entry.get("extrapolation") or {}).get(method)
+    return None if name is None else root / zoo_name(encoder, preset) / name
+
+
 def rebuild_command(path: Path, entry: dict) -> str:
     """How to rebuild the checkpoint `path` of a zoo entry: the whole zoo, or its stage alone."""
     stage = (entry["files"].get(path.name) or {}).get("stage")
@@ -114,9 +127,10 @@ def save_checkpoint(path: Path, state_dict: dict, *, encoder: str, preset: str, 
 
 
 def register(path: Path, *, encoder: str, preset: str, methods: list[str], info: dict,
-             root: Path = WEIGHTS_DIR, provides_encoder: bool = False) -> None:
+             root: Path = WEIGHTS_DIR, provides_encoder: bool = False, extrapolates: tuple[str, ...] = ()) -> None:
     """Add (or replace) a checkpoint file in the manifest, with its sha256 and size; `provides_encoder`:
-    this file holds the encoder every CAV runs (the single-agent stage)."""
+    this file holds the encoder every CAV runs (the single-agent stage); `extrapolates`: methods whose
+    latency-compensation add-on this file is (it then serves no method itself: pass methods=[])."""
     doc = read_manifest(root)
     entry = doc["zoos"].setdefault(zoo_name(encoder, preset), {"encoder": None, "methods": {}, "files": {}})
     if provides_encoder:
@@ -124,4 +138,6 @@ def register(path: Path, *, encoder: str, preset: str, methods: list[str], info:
     entry["files"][path.name] = {"sha256": sha256(path), "bytes": path.stat().st_size, **info}
     for m in methods:
         entry["methods"][m] = path.name
+    for m in extrapolates:
+        entry.setdefault("extrapolation", {})[m] = path.name
     write_manifest(doc, root)

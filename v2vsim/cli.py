@@ -234,7 +234,8 @@ def build_parser() -> argparse.ArgumentParser:
                                      "(docs/training.md)")
     p.add_argument("--data", required=True, help="dataset directory written by `v2vsim dataset`")
     p.add_argument("--stage", default="all",
-                   help="all | single | cache | early | attfuse | fcooper | v2vnet | cobevt | disconet")
+                   help="all | single | cache | none | early | attfuse | fcooper | v2vnet | cobevt | disconet | "
+                        "extrapolate (latency compensation for the --out zoo's cobevt; not part of all)")
     p.add_argument("--out", default="models/weights", help="zoo directory: manifest.json + <encoder>_<preset>/")
     p.add_argument("--work", default="runs/train", help="checkpoints and the feature cache (resumable)")
     p.add_argument("--resume", action="store_true", help="continue the stage from its last checkpoint")

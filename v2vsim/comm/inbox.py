@@ -12,6 +12,7 @@ its delivery waits for the channel, and one dropped at the sender (superseded or
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Literal
@@ -33,7 +34,7 @@ class Arrival:
     latency_s: float = 0.0  # on the channel (0 for the receiver's own message)
 
 
-Outcome = Literal["delivered", "in_flight", "dropped", "out_of_range", "stale", "rejected"]
+Outcome = Literal["delivered", "reused", "in_flight", "dropped", "out_of_range", "stale", "rejected"]
 
 
 @dataclass(frozen=True)
@@ -41,13 +42,15 @@ class LinkEvent:
     """What one sender's link did at one fusion instant (the recording draws it as a V2V link).
 
     delivered: a message from this sender is fused for the first time now (latency_ms: its
-    channel latency); otherwise the fate of its newest message: still in flight (latency_ms: when
-    it will arrive), dropped, out of range or rejected by the decoder; stale: what it had sent
-    became too old and nothing newer came."""
+    channel latency); reused: nothing newer came by the deadline, so an earlier message is fused
+    again; otherwise the fate of its newest message: still in flight (latency_ms: when it will
+    arrive), dropped, out of range or rejected by the decoder; stale: what it had sent became too
+    old and nothing newer came. age_ms: the fused message's age at the fused frame's instant."""
 
     sender: str
     outcome: Outcome
     latency_ms: float | None = None
+    age_ms: float | None = None
 
 
 @dataclass(frozen=True)
@@ -74,6 +77,7 @@ class Inbox:
         self._links: dict[str, LinkModel] = {}
         self._pending: dict[str, list[Arrival]] = {}
         self._latest: dict[str, Arrival] = {}  # the newest fused-or-fusable message per sender
+        self._previous: dict[str, Message] = {}  # the one _latest replaced, per sender
         self._fused: set[tuple[str, int]] = set()  # (sender, frame) whose send-to-fuse latency is recorded
         self._events: dict[str, LinkEvent] = {}  # per sender, since the last take_events()
         self.bytes_this_frame = 0
@@ -157,8 +161,14 @@ class Inbox:
             return msg.sender_pose
         return self.link(msg.sender_id).noisy_pose(msg.sender_pose)
 
-    def ready(self, now: float) -> dict[str, Message]:
-        """The newest message per sender that has arrived by `now` and is not older than max_age_ms."""
+    def ready(self, now: float, as_of: float | None = None) -> dict[str, Message]:
+        """The newest message per sender that has arrived by `now` and is not older than max_age_ms at `as_of`.
+
+        `now` is when the receiver fuses (the fused frame's capture time plus comm.fusion_deadline_ms) and
+        `as_of` the instant the fused frame describes (its capture time; default `now`): a message captured at
+        `as_of` that arrived by the deadline is fused aligned, age 0. Every neighbour message handed out is
+        counted with its age at `as_of` (CommStats.record_age), and, the first time, its channel latency."""
+        as_of = now if as_of is None else as_of
         if self.medium is not None:
             self._advance_medium(now)
         out: dict[str, Message] = {}
@@ -168,20 +178,35 @@ class Inbox:
             for a in arrived:
                 prev = self._latest.get(sender)
                 if prev is None or a.message.frame > prev.message.frame:
+                    if prev is not None:
+                        self._previous[sender] = prev.message
                     self._latest[sender] = a
         for sender, a in list(self._latest.items()):
-            if is_stale(a.message.capture_time, now, self.cfg.max_age_ms):
+            if is_stale(a.message.capture_time, as_of, self.cfg.max_age_ms):
                 if sender != self.receiver:
                     self.stats.record_stale()
                     self._events.setdefault(sender, LinkEvent(sender, "stale"))
                 del self._latest[sender]  # counted once; an older message never comes back
                 continue
             out[sender] = a.message
-            if sender != self.receiver and (sender, a.message.frame) not in self._fused:
+            if sender == self.receiver:
+                continue
+            age_s = as_of - a.message.capture_time
+            self.stats.record_age(age_s)
+            if (sender, a.message.frame) not in self._fused:
                 self._fused.add((sender, a.message.frame))  # a message reused in later frames counts once
-                self.stats.record_fused(now - a.message.capture_time)
-                self._events[sender] = LinkEvent(sender, "delivered", a.latency_s * 1e3)
+                self.stats.record_fused(a.latency_s)
+                self._events[sender] = LinkEvent(sender, "delivered", a.latency_s * 1e3, age_s * 1e3)
+            else:  # fused again, older: the link's label carries the age of what is fused
+                prior = self._events.get(sender)
+                self._events[sender] = (LinkEvent(sender, "reused", None, age_s * 1e3) if prior is None
+                                        else dataclasses.replace(prior, age_ms=age_s * 1e3))
         return out
+
+    def previous(self, sender: str) -> Message | None:
+        """The message `sender` had delivered before the one `ready` now hands out (an older frame), if any:
+        what latency compensation estimates motion from."""
+        return self._previous.get(sender)
 
     def take_events(self) -> list[LinkEvent]:
         """Each sender's link event since the last call, by sender."""

@@ -8,7 +8,11 @@ Semantics, so that senders and receivers in different processes can be merged:
   out_of_range messages not delivered because the link was longer than comm.range_m;
   stale       delivered messages older than max_age_ms when the receiver would fuse them;
   rejected    received bytes that failed codec validation (by reason);
-  latency     send-to-fuse time of fused messages, in the run's clock.
+  latency     channel time of fused messages (serialisation + the configured latency, arrival minus
+              capture), counted once per message, in the run's clock;
+  age         at every fusion, each fused neighbour message's age at the instant the fused frame describes
+              (its capture time t_k): 0 when the message of frame k came by the fusion deadline, 100 ms when
+              the ego fused the previous frame's, ...; AGE_BUCKET_MS-wide buckets plus p50/p95.
 Under comm.channel.model tr37885 (only then; disk output is unchanged) also:
   los, nlos, nlosv       messages within range by link state (delivered or not);
   delivery_by_distance   per link state and DISTANCE_BIN_M-wide bin of the sender-receiver distance
@@ -36,6 +40,7 @@ from v2vsim.comm.medium import SharedMedium
 from v2vsim.comm.tr37885 import LINK_STATES
 
 DISTANCE_BIN_M = 25.0  # width of the delivery_by_distance bins (m)
+AGE_BUCKET_MS = 100.0  # width of the age-at-fusion buckets: one frame at 10 Hz
 
 
 class CommStats:
@@ -50,6 +55,7 @@ class CommStats:
         self.rejected_reasons: Counter[str] = Counter()
         self.bytes_sent = 0
         self.latency_s: list[float] = []
+        self.age_s: list[float] = []  # one per (fusion, neighbour message)
         self.lost_agents: set[str] = set()
         self.link_states: Counter[str] | None = None  # None: no link states (disk); see track_link_states
         self.by_distance: Counter[tuple[str, int, bool]] = Counter()  # (state, bin, delivered) -> messages
@@ -103,8 +109,12 @@ class CommStats:
         self.rejected_reasons[reason] += 1
 
     def record_fused(self, latency_s: float) -> None:
-        """A message reached fusion latency_s after it was sent (seconds in the run's clock)."""
+        """A message is fused for the first time; it spent latency_s on the channel (seconds, the run's clock)."""
         self.latency_s.append(float(latency_s))
+
+    def record_age(self, age_s: float) -> None:
+        """A neighbour message was fused age_s after its capture, measured at the fused frame's instant."""
+        self.age_s.append(float(age_s))
 
     def record_lost_agent(self, agent_id: str) -> None:
         self.lost_agents.add(agent_id)
@@ -119,6 +129,7 @@ class CommStats:
         self.rejected_reasons.update(other.rejected_reasons)
         self.bytes_sent += other.bytes_sent
         self.latency_s.extend(other.latency_s)
+        self.age_s.extend(other.age_s)
         self.lost_agents |= other.lost_agents
         if other.link_states is not None:
             self.track_link_states().update(other.link_states)
@@ -134,6 +145,16 @@ class CommStats:
         if not self.latency_s:
             return None
         return round(float(np.percentile(np.asarray(self.latency_s) * 1000.0, q)), 3)
+
+    def age_json(self) -> dict[str, Any]:
+        """{"fused": n, "buckets": {"0": n, "100": n, ...}, "p50", "p95"} of the ages at fusion (ms)."""
+        ms = np.asarray(self.age_s, dtype=float) * 1000.0
+        # a frame-k message fused at frame k is 0 ms old; k-1's is 100 ms (+- float error): bucket by lower bound
+        buckets = Counter(int(math.floor(v / AGE_BUCKET_MS + 1e-6) * AGE_BUCKET_MS) for v in ms)
+        return {"fused": int(ms.size),
+                "buckets": {str(b): buckets[b] for b in sorted(buckets)},
+                "p50": round(float(np.percentile(ms, 50)), 3) if ms.size else None,
+                "p95": round(float(np.percentile(ms, 95)), 3) if ms.size else None}
 
     @property
     def bytes_per_message(self) -> int:
@@ -163,6 +184,7 @@ class CommStats:
             "bytes_total": self.bytes_sent,
             "rejected_reasons": dict(sorted(self.rejected_reasons.items())),
             "lost_agents": sorted(self.lost_agents),
+            "age_ms": self.age_json(),
         }
         if self.link_states is not None:
             doc.update({s: self.link_states[s] for s in LINK_STATES})
@@ -180,7 +202,7 @@ class CommStats:
         return {"sent": self.sent, "delivered": self.delivered, "dropped": self.dropped,
                 "out_of_range": self.out_of_range, "stale": self.stale,
                 "rejected_reasons": dict(self.rejected_reasons), "bytes_sent": self.bytes_sent,
-                "latency_s": list(self.latency_s), "lost_agents": sorted(self.lost_agents),
+                "latency_s": list(self.latency_s), "age_s": list(self.age_s), "lost_agents": sorted(self.lost_agents),
                 "link_states": None if self.link_states is None else dict(self.link_states),
                 "by_distance": [[s, b, ok, n] for (s, b, ok), n in sorted(self.by_distance.items())],
                 "medium": self.medium, "cbr": list(self.cbr)}
@@ -193,6 +215,7 @@ class CommStats:
         s.rejected_reasons = Counter({str(k): int(v) for k, v in state["rejected_reasons"].items()})
         s.bytes_sent = int(state["bytes_sent"])
         s.latency_s = [float(v) for v in state["latency_s"]]
+        s.age_s = [float(v) for v in state.get("age_s", [])]
         s.lost_agents = set(state["lost_agents"])
         if state.get("link_states") is not None:  # absent in states written before tr37885
             s.link_states = Counter({str(k): int(v) for k, v in state["link_states"].items()})

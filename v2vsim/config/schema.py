@@ -171,6 +171,13 @@ class CommConfig:
     drop: DropConfig = field(default_factory=DropConfig)
     bandwidth_mbps: float | None = _f(27.0, "> 0 or null (unlimited)", _pos)
     max_age_ms: float = _f(500.0, "> 0", _pos)
+    # The ego fuses frame k at t_k + fusion_deadline_ms with every message that has arrived by then; one of frame
+    # k that made it is fused aligned, as of t_k (docs/run.md "Time at the receiver"). 50 ms: half a 10 Hz frame,
+    # the wait a receiver can afford while its own sensing and encoding run, leaving the rest for fusion.
+    fusion_deadline_ms: float = _f(50.0, ">= 0 and less than one frame (1000 / rate_hz ms)", _nonneg)
+    # on: late fusion's neighbour outputs are moved by each object's velocity (model-free), and methods whose zoo
+    # ships a trained extrapolation module use it on late features (learned); docs/run.md lists which.
+    compensation: Literal["off", "on"] = "off"
     pose_noise: PoseNoiseConfig = field(default_factory=PoseNoiseConfig)
     compression: Literal["none", "zlib"] = "none"
     channel_compression: int = _f(1, "1 (off) or a reduction ratio such as 8, 16, 32, 64", _pos)

@@ -7,6 +7,10 @@ targets on the ego's BEV grid. Frames are read lazily from their .npz files.
 `delays`: frames of V2V delay drawn per sample for the neighbours (0 = same frame). A neighbour
 delayed by d contributes its frame k-d data warped with its frame k-d pose, while targets are of
 frame k: the misalignment a late message causes in a run (DESIGN.md "Latency matters through pose").
+
+`with_previous`: each agent's message before the one it contributes (the frame before its capture frame),
+for receiver-side latency compensation (models.extrapolation): its frame index and its capture pose in the
+frame of the agent's capture pose.
 """
 
 from __future__ import annotations
@@ -92,6 +96,9 @@ class CooperativeDataset(Dataset):
     "extrinsics" [M, 4, 4] (camera to body); empty lists without
     "agents": list of agent ids; "rel_poses" [L, 3] (dx, dy, dyaw) in the ego frame; "valid" [L] bool
     "agent_frames": frame index each agent's data comes from (k - delay)
+    with_previous: "prev_frames" the frame of each agent's previous message (agent_frames - 1; -1 when that
+    frame does not exist or the agent was not a CAV in it); "prev_rel_poses" [L, 3] (dx, dy, dyaw) of its
+    pose at prev_frames in its body frame at agent_frames (zeros where there is none)
     "vehicle" [S, S] bool: vehicles visible to some CAV (the scored target); "dynamic": all vehicles;
     "visible_self": vehicles the ego's own sensors saw; "road", "lane" [S, S] bool
     "boxes" [K, 5] visible GT boxes; "boxes_hidden" [J, 5] the others (ego frame); "boxes_self" /
@@ -101,7 +108,7 @@ class CooperativeDataset(Dataset):
 
     def __init__(self, root: Path | str, split: str, max_agents: int = 5, range_m: float | None = None,
                  delays: Sequence[int] = (0,), egos: str = "all", stride: int = 1, seed: int = 0,
-                 with_points: bool = True, with_images: bool = False) -> None:
+                 with_points: bool = True, with_images: bool = False, with_previous: bool = False) -> None:
         self.store = FrameStore(Path(root))
         self.split = split
         self.items = self.store.keys(split, egos=egos, stride=stride)
@@ -114,6 +121,7 @@ class CooperativeDataset(Dataset):
         self.epoch = 0
         self.with_points = with_points
         self.with_images = with_images
+        self.with_previous = with_previous
 
     def __len__(self) -> int:
         return len(self.items)
@@ -153,8 +161,10 @@ class CooperativeDataset(Dataset):
             clouds = {c: files[src[c]][0][f"points_{c}"] for c in agents} if self.with_points else {}
             cams = {c: tuple(files[src[c]][0][f"{k}_{c}"] for k in ("images", "intrinsics", "extrinsics"))
                     for c in agents} if self.with_images else {}
+            previous = self._previous(stack, key.run, agents, src, agent_poses) if self.with_previous else {}
         rel = np.array([relative_pose(ego_pose, agent_poses[c]) for c in agents], dtype=np.float32)
         return {
+            **previous,
             "points": [torch.from_numpy(clouds[c].astype(np.float32)) for c in agents] if self.with_points else [],
             "images": [torch.from_numpy(cams[c][0]).permute(0, 3, 1, 2) for c in agents] if cams else [],
             "intrinsics": [torch.from_numpy(cams[c][1].astype(np.float32)) for c in agents] if cams else [],
@@ -175,11 +185,29 @@ class CooperativeDataset(Dataset):
             "key": key,
         }
 
+    def _previous(self, stack: contextlib.ExitStack, run: str, agents: list[str], src: dict[str, int],
+                  poses: dict[str, Pose]) -> dict:
+        """The previous message of each of `agents`: "prev_frames" and "prev_rel_poses" (class docstring)."""
+        frames, rel = [], np.zeros((len(agents), 3), dtype=np.float32)
+        opened: dict[int, tuple[list[str], np.ndarray]] = {}
+        for j, c in enumerate(agents):
+            k = src[c] - 1
+            if k >= 0 and k not in opened:
+                g = stack.enter_context(self.store.frame(run, k))
+                opened[k] = ([str(x) for x in g["cavs"]], g["poses"])
+            if k < 0 or c not in opened[k][0]:
+                frames.append(-1)
+                continue
+            frames.append(k)
+            rel[j] = relative_pose(poses[c], _pose(opened[k][1], opened[k][0], c))
+        return {"prev_frames": frames, "prev_rel_poses": torch.from_numpy(rel)}
+
 
 def collate(samples: list[dict]) -> dict:
     """Batch: "points" B lists of clouds, "rel_poses" [B, L, 3] and "valid" [B, L] padded to the largest
     L, masks stacked [B, S, S], box lists kept as lists; with images, "images" [B, L, M, 3, h, w] uint8,
-    "intrinsics" [B, L, M, 3, 3], "extrinsics" [B, L, M, 4, 4] (padding: zero images, identity matrices)."""
+    "intrinsics" [B, L, M, 3, 3], "extrinsics" [B, L, M, 4, 4] (padding: zero images, identity matrices);
+    with_previous, "prev_rel_poses" [B, L, 3] padded like "rel_poses" and "prev_frames" B lists."""
     b, lmax = len(samples), max(len(s["agents"]) for s in samples)
     rel = torch.zeros(b, lmax, 3)
     valid = torch.zeros(b, lmax, dtype=torch.bool)
@@ -188,6 +216,12 @@ def collate(samples: list[dict]) -> dict:
         rel[i, :n] = s["rel_poses"]
         valid[i, :n] = True
     out: dict = {"points": [s["points"] for s in samples], "rel_poses": rel, "valid": valid}
+    if "prev_rel_poses" in samples[0]:  # with_previous: [B, L, 3], zeros for padding
+        prev = torch.zeros(b, lmax, 3)
+        for i, s in enumerate(samples):
+            prev[i, :len(s["agents"])] = s["prev_rel_poses"]
+        out["prev_rel_poses"] = prev
+        out["prev_frames"] = [s["prev_frames"] for s in samples]
     if samples[0]["images"]:
         m, _, h, w = samples[0]["images"][0].shape
         images = torch.zeros(b, lmax, m, 3, h, w, dtype=torch.uint8)

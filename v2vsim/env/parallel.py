@@ -320,7 +320,8 @@ class CooperativePerceptionEnv(ParallelEnv):
                 continue
             inbox.offer(msg, len(data), msg.capture_time, distance(msg.sender_pose, me.as_tuple()),
                         receiver_pose=me.as_tuple(), world=world)
-        fusable = inbox.ready(world.time)
+        deadline = world.time + self._episode_sc.comm.fusion_deadline_ms / 1000.0  # as the ego does (docs/run.md)
+        fusable = inbox.ready(deadline, as_of=world.time)
         for ev in inbox.take_events():
             self._note_link(ev.sender, j, ev.outcome, ev.latency_ms)
         inbox.take_bytes()
@@ -342,7 +343,7 @@ class CooperativePerceptionEnv(ParallelEnv):
         return pred
 
     def _note_link(self, sender: str, receiver: str, outcome: str, latency_ms: float | None) -> None:
-        if outcome == "in_flight":
+        if outcome in ("in_flight", "reused"):  # reused: an earlier message fused again, not a delivery
             return
         window = self._links.setdefault((sender, receiver), deque(maxlen=self.options.link_window))
         window.append(outcome == "delivered")

@@ -18,6 +18,7 @@ from torch import nn
 
 from models import zoo
 from models.compression import ChannelCompressor
+from models.extrapolation import FeatureExtrapolation
 from models.presets import get_preset
 from models.registry import build_cooperative, build_encoder
 from v2vsim.config import ConfigError, Scenario
@@ -171,3 +172,44 @@ def build_method_models(sc: Scenario, encoder: nn.Module, methods: tuple[str, ..
         model.heads.for_inference()
         out[m] = model.eval()
     return out
+
+
+def build_extrapolation(sc: Scenario, method: str = "cobevt") -> FeatureExtrapolation | None:
+    """The zoo's receiver-side latency compensation for `method` (models.extrapolation, trained by the
+    `extrapolate` stage on top of that method's checkpoint), verified like every checkpoint; None when the
+    scenario runs random weights or its zoo has none for `method` (never a randomly initialised one).
+    ConfigError naming the file when it is broken, does not fit, or was trained on another checkpoint of
+    `method` than the zoo's current one."""
+    z = zoo_for(sc)
+    if z is None:
+        return None
+    root, entry = z
+    enc, preset = sc.perception.encoder, sc.perception.preset
+    path = zoo.extrapolation_file(entry, method, root, enc, preset)
+    if path is None:
+        return None
+    try:
+        state = zoo.load_checkpoint(path, entry)
+    except zoo.ZooError as e:
+        raise ConfigError(str(e)) from None
+    rebuild = zoo.rebuild_command(path, entry)
+    base = (entry["files"].get(path.name) or {}).get("extrapolates")
+    current = zoo.method_file(entry, method, root, enc, preset)
+    if base is not None and (current is None
+                             or (entry["files"].get(current.name) or {}).get("sha256") != base["sha256"]):
+        raise ConfigError(f"{path}: trained on top of {base['file']} (sha256 {base['sha256'][:12]}…), not on the "
+                          f"zoo's current {method} checkpoint; rebuild it with: {rebuild}")
+    sub = {k[len("extrapolation."):]: v for k, v in state.items() if k.startswith("extrapolation.")}
+    channels = get_preset(preset).channels
+    first = sub.get("net.0.weight")  # [H, 2C, 3, 3]
+    try:
+        if first is None or first.shape[1] != 2 * channels:
+            raise RuntimeError(f"expected a first convolution over 2 x {channels} channels, got "
+                               f"{None if first is None else tuple(first.shape)}")
+        module = FeatureExtrapolation(channels, first.shape[0])
+        module.load_state_dict(sub)
+    except RuntimeError as e:
+        reason = " ".join(str(e).split())
+        raise ConfigError(f"{path}: the {method} extrapolation weights do not fit this version of the model "
+                          f"({reason[:300]}); rebuild it with: {rebuild}") from None
+    return module.eval()

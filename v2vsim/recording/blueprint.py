@@ -35,6 +35,8 @@ def default_blueprint(methods: list[str], cameras: list[str], static: StaticMap,
                            plot_legend=rrb.PlotLegend(corner="LeftTop", visible=True)),
         rrb.TimeSeriesView(origin="links/latency_ms", name="link latency (ms)",
                            plot_legend=rrb.PlotLegend(corner="LeftTop", visible=True)),
+        rrb.TimeSeriesView(origin="links/age_ms", name="age of fused messages (ms)",
+                           plot_legend=rrb.PlotLegend(corner="LeftTop", visible=True)),
         rrb.TimeSeriesView(origin="links/delivered", name="link delivery (fraction so far)",
                            plot_legend=rrb.PlotLegend(corner="LeftBottom", visible=True)))
     left = rrb.Vertical(world, rrb.Horizontal(gt, cams, column_shares=[1, 1.3]), row_shares=[3, 2])

@@ -6,7 +6,7 @@ the per-frame IoU and link plots, and a fusion log line. Entity paths:
     world/{vehicles,cavs,ego}                     Boxes3D (CAVs labelled, the ego solid)
     world/lidar/<cav>  world/links  world/bev_extent  world/ego_cameras/<name>
     bev/gt/{classes,boxes}   bev/<method>/{probability,errors,boxes}
-    metrics/iou_vehicle/<method>   links/{latency_ms,delivered}/<cav>   log/fusion
+    metrics/iou_vehicle/<method>   links/{latency_ms,age_ms,delivered}/<cav>   log/fusion
 
 Rows are batched into few large chunks (the batcher flushes every 30 s or 16 MB, not every
 few milliseconds), and things that never change are logged once as static.
@@ -70,6 +70,8 @@ class Recorder:
             colour = world3d.cav_colour(self.cavs, cav)
             log(f"links/latency_ms/{cav}", rr.SeriesPoints(colors=colour, names=cav, markers="circle",
                                                            marker_sizes=2.0), static=True)
+            log(f"links/age_ms/{cav}", rr.SeriesPoints(colors=colour, names=cav, markers="circle",
+                                                       marker_sizes=2.0), static=True)
             log(f"links/delivered/{cav}", rr.SeriesLines(colors=colour, names=cav, widths=2.0), static=True)
 
     def log_frame(self, k: int, world: WorldState, gt: dict[str, np.ndarray], boxes_gt: np.ndarray,
@@ -95,7 +97,9 @@ class Recorder:
             if (iou := ious.get(m)) is not None:
                 rec.log(f"metrics/iou_vehicle/{m}", rr.Scalars(iou))
         self._log_links(links)
-        fates = ", ".join(f"{e.sender} {e.outcome.replace('_', ' ')}" for e in links) or "no V2V messages"
+        fates = ", ".join(f"{e.sender} {e.outcome.replace('_', ' ')}"
+                          + (f" (fused age {e.age_ms:.0f} ms)" if e.age_ms is not None else "")
+                          for e in links) or "no V2V messages"
         rec.log("log/fusion", rr.TextLog(f"frame {k}: fused {', '.join(inp.senders)} | links: {fates}",
                                          level=rr.TextLogLevel.INFO))
 
@@ -127,8 +131,10 @@ class Recorder:
     def _log_links(self, links: list[LinkEvent]) -> None:
         for e in links:
             n = self.delivered.setdefault(e.sender, [0, 0])
-            if e.outcome == "in_flight":
-                continue  # its fate is told when it is fused (or goes stale)
+            if e.age_ms is not None:
+                self.rec.log(f"links/age_ms/{e.sender}", rr.Scalars(e.age_ms))
+            if e.outcome in ("in_flight", "reused"):
+                continue  # its fate is told when it is fused (or goes stale); reused: an earlier one fused again
             n[0] += e.outcome == "delivered"
             n[1] += 1
             self.rec.log(f"links/delivered/{e.sender}", rr.Scalars(n[0] / n[1]))

@@ -29,8 +29,9 @@ OTHER_VEHICLE_RGB = (190, 190, 190)
 # Tableau 10: one colour per CAV, shared by its box, its points, its link time series.
 CAV_PALETTE = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189),
                (140, 86, 75), (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207)]
-OUTCOME_RGB = {"delivered": (40, 210, 90), "in_flight": (250, 210, 40), "stale": (250, 140, 30),
-               "dropped": (235, 50, 40), "out_of_range": (150, 150, 150), "rejected": (210, 60, 220)}
+OUTCOME_RGB = {"delivered": (40, 210, 90), "reused": (120, 200, 200), "in_flight": (250, 210, 40),
+               "stale": (250, 140, 30), "dropped": (235, 50, 40), "out_of_range": (150, 150, 150),
+               "rejected": (210, 60, 220)}
 LINK_HEIGHT_M = 3.0  # links are drawn above the roofs so they do not hide in the boxes
 
 
@@ -121,7 +122,8 @@ def bev_extent(ego: Pose, size_m: float) -> rr.LineStrips3D:
 
 
 def link_lines(events: list[LinkEvent], ego: Pose, poses: dict[str, Pose]) -> rr.LineStrips3D:
-    """One line per sender (at its true pose) to the ego, coloured by outcome, labelled with it."""
+    """One line per sender (at its true pose) to the ego, coloured by outcome, labelled with it and with the age
+    of the message the ego fused from that sender (0 ms: captured at the fused frame's instant)."""
     strips, colours, labels = [], [], []
     for e in events:
         p = poses.get(e.sender)
@@ -131,7 +133,8 @@ def link_lines(events: list[LinkEvent], ego: Pose, poses: dict[str, Pose]) -> rr
         colours.append(OUTCOME_RGB[e.outcome])
         what = e.outcome.replace("_", " ")
         ms = f" {e.latency_ms:.0f} ms" if e.latency_ms is not None else ""
-        labels.append(f"{e.sender}: {what}{ms}")
+        age = f", fused age {e.age_ms:.0f} ms" if e.age_ms is not None else ""
+        labels.append(f"{e.sender}: {what}{ms}{age}")
     return rr.LineStrips3D(np.array(strips, np.float32).reshape(-1, 2, 3), colors=colours, labels=labels, radii=0.25)
 
 

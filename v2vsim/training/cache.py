@@ -4,6 +4,7 @@ trains on the very messages it fuses in a run, at a fraction of the cost of re-e
 
 from __future__ import annotations
 
+import hashlib
 import json
 import sys
 import time
@@ -15,6 +16,28 @@ from torch import nn
 
 from v2vsim.data.layout import runs_of
 from v2vsim.data.torch_dataset import FrameStore
+
+ENCODER_FILE = "encoder.json"  # which encoder wrote the cache: {"source": ..., "fingerprint": ...}
+
+
+def encoder_fingerprint(state: dict) -> str:
+    """sha256 over an encoder's state_dict (names and tensor bytes, in name order)."""
+    h = hashlib.sha256()
+    for k in sorted(state):
+        h.update(k.encode())
+        h.update(state[k].detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+def write_cache_encoder(folder: Path, source: str, state: dict) -> None:
+    (folder / ENCODER_FILE).write_text(json.dumps({"source": source, "fingerprint": encoder_fingerprint(state)}))
+
+
+def read_cache_encoder(folder: Path) -> dict | None:
+    """{"source", "fingerprint"} of the encoder that wrote the cache; None for a cache written before this
+    was recorded."""
+    p = folder / ENCODER_FILE
+    return json.loads(p.read_text()) if p.is_file() else None
 
 
 class FeatureCache:

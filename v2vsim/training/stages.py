@@ -11,11 +11,17 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from models import zoo
+from models.extrapolation import FeatureExtrapolation
 from models.registry import MODALITY, build_cooperative
 from v2vsim.data.layout import DatasetError
 
 FUSION_STAGES = ("attfuse", "fcooper", "v2vnet", "cobevt", "disconet")
 STAGE_ORDER = ("single", "cache", "none", "early", *FUSION_STAGES)
+# Receiver-side latency compensation (models.extrapolation) on top of a method already in the zoo (--out):
+# an add-on, run on its own (`--stage extrapolate`), not part of `all`.
+EXTRAPOLATE = "extrapolate"
+EXTRA_STAGES = (EXTRAPOLATE,)
 
 
 @dataclass(frozen=True)
@@ -56,6 +62,10 @@ SPECS: dict[str, StageSpec] = {
 # KL per cell starts near 0.1 here; weight 10 puts distillation on the scale of the perception losses
 # (1e3 made it ~100x them).
 SPECS["disconet"] = dataclasses.replace(SPECS["disconet"], distill_weight=10.0)
+# FeatureExtrapolation for the zoo's CoBEVT (frozen fusion + heads, the same frozen feature cache): neighbours
+# 1-5 frames old (up to comm.max_age_ms 500 at 10 Hz), each with the message before it; only the
+# extrapolation module trains. `methods`: the method whose checkpoint it extends (it replaces none).
+SPECS[EXTRAPOLATE] = StageSpec(EXTRAPOLATE, ("cobevt",), "cache", "coop", 3, 1200, 4, 1e-3, 5, (1, 2, 3, 4, 5))
 
 
 @dataclass(frozen=True)
@@ -94,7 +104,37 @@ def load_stage_state(args: TrainArgs, stage: str) -> dict:
     return torch.load(p, map_location="cpu", weights_only=True)["state_dict"]
 
 
+def zoo_state(args: TrainArgs, method: str) -> dict:
+    """The verified state_dict of `method`'s checkpoint ("encoder": the CAVs' encoder) in the zoo at --out."""
+    entry = zoo.zoo_entry(args.encoder, args.preset, args.out)
+    path = None if entry is None else zoo.method_file(entry, method, args.out, args.encoder, args.preset)
+    if path is None:
+        stage = "single" if method == "encoder" else method
+        raise DatasetError(f"{args.out / zoo.MANIFEST}: no {method} checkpoint of "
+                           f"{zoo.zoo_name(args.encoder, args.preset)}; train it into this --out first "
+                           f"(`v2vsim train --stage {stage} --out {args.out}`)")
+    try:
+        return zoo.load_checkpoint(path, entry)
+    except zoo.ZooError as e:
+        raise DatasetError(str(e)) from None
+
+
+def build_extrapolation_model(args: TrainArgs, spec: StageSpec) -> nn.Module:
+    """The zoo's (--out) model of spec.methods[0] with a fresh FeatureExtrapolation as `.extrapolation`; its
+    encoder keeps its seeded initial weights (the stage reads the feature cache, never runs it)."""
+    (method,) = spec.methods
+    torch.manual_seed(args.seed)
+    model = build_cooperative(args.encoder, method, args.preset)
+    state = zoo_state(args, method)
+    model.fusion.load_state_dict(_prefixed(state, "fusion."))
+    model.heads.load_state_dict(_prefixed(state, "heads."))
+    model.extrapolation = FeatureExtrapolation(model.encoder.out_channels)
+    return model
+
+
 def build_stage_model(args: TrainArgs, spec: StageSpec) -> nn.Module:
+    if spec.name == EXTRAPOLATE:
+        return build_extrapolation_model(args, spec)
     method = "none" if spec.name == "single" else spec.name
     torch.manual_seed(args.seed)
     model = build_cooperative(args.encoder, method, args.preset)
@@ -106,6 +146,13 @@ def build_stage_model(args: TrainArgs, spec: StageSpec) -> nn.Module:
 
 
 def trainable(model: nn.Module, spec: StageSpec) -> list[nn.Parameter]:
+    if spec.name == EXTRAPOLATE:  # the method's model stays frozen; gradients only flow through it
+        for p in model.parameters():
+            p.requires_grad_(False)
+        params = list(model.extrapolation.parameters())
+        for p in params:
+            p.requires_grad_(True)
+        return params
     if spec.inputs == "cache":
         for p in model.encoder.parameters():
             p.requires_grad_(False)
@@ -114,6 +161,8 @@ def trainable(model: nn.Module, spec: StageSpec) -> list[nn.Parameter]:
 
 
 def state_to_save(model: nn.Module, spec: StageSpec) -> dict:
+    if spec.name == EXTRAPOLATE:
+        return {f"extrapolation.{k}": v for k, v in model.extrapolation.state_dict().items()}
     parts = {"fusion": model.fusion, "heads": model.heads}
     if spec.name in ("single", "early"):
         parts["encoder"] = model.encoder
@@ -123,6 +172,6 @@ def state_to_save(model: nn.Module, spec: StageSpec) -> dict:
 def stages_for(name: str, encoder: str = "pointpillars") -> list[str]:
     if name == "all":
         return [s for s in STAGE_ORDER if MODALITY[encoder] == "lidar" or s != "early"]
-    if name not in STAGE_ORDER:
-        raise ValueError(f"--stage {name!r}: allowed: all, {', '.join(STAGE_ORDER)}")
+    if name not in STAGE_ORDER + EXTRA_STAGES:
+        raise ValueError(f"--stage {name!r}: allowed: all, {', '.join(STAGE_ORDER + EXTRA_STAGES)}")
     return [name]

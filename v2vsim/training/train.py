@@ -12,6 +12,9 @@ and its DiscoNet trains without distillation (its teacher is early fusion).
              CAVs within range, neighbours randomly 0-1 frames old (a 27 Mbps link delivers one frame late)
     disconet as above, plus DiscoNet's distillation: its fused map is pulled towards the early-fusion
              teacher's features (KL over channels per cell; Li et al. 2021, Eq. 6)
+    extrapolate  (on its own, not in `all`) receiver-side latency compensation (models.extrapolation,
+             FFNet-style first-order extrapolation) for the zoo's CoBEVT (--out; fusion + heads frozen) on the
+             same cache: neighbours 1-5 frames late, each with the message before it
 
 Losses (models.losses): focal loss on the dynamic class, cross-entropy on road/lane, focal +
 smooth-L1 on the anchor head. AdamW with a one-cycle schedule; seeded; progress with loss,
@@ -37,9 +40,17 @@ from models.registry import MODALITY, build_cooperative
 from v2vsim.data.layout import runs_of
 from v2vsim.data.torch_dataset import CooperativeDataset, collate, tensor_inputs
 from v2vsim.training.augment import yaw_rotate_batch
-from v2vsim.training.cache import FeatureCache, build_feature_cache
+from v2vsim.training.cache import (
+    FeatureCache,
+    build_feature_cache,
+    encoder_fingerprint,
+    read_cache_encoder,
+    write_cache_encoder,
+)
+from v2vsim.training.extrapolate import extrapolate_features
 from v2vsim.training.losses import distill_loss, perception_loss
 from v2vsim.training.stages import (
+    EXTRAPOLATE,
     SPECS,
     StageSpec,
     TrainArgs,
@@ -50,6 +61,7 @@ from v2vsim.training.stages import (
     stages_for,
     state_to_save,
     trainable,
+    zoo_state,
 )
 from v2vsim.training.validate import validate
 
@@ -76,6 +88,8 @@ def forward(model: nn.Module, spec: StageSpec, batch: dict, cache: FeatureCache 
     if spec.inputs == "cache":
         enc = model.encoder
         feats = _features(cache, batch, enc.out_channels, enc.out_cells).to(dev)
+        if spec.name == EXTRAPOLATE:
+            feats = extrapolate_features(model.extrapolation, feats, batch, cache, model.bev_size_m)
         fused = model.fuse(feats, rel, valid)
         return {"fused": fused, **model.heads(fused)}
     return model(*tensor_inputs(batch, dev))
@@ -110,12 +124,15 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
         raise ValueError(f"--stage early: early fusion ships LiDAR points; the {args.encoder} (camera) zoo has no "
                          "early stage")
     if args.stage == "cache":
-        single = build_stage_model(args, SPECS["none"])  # the single-agent encoder
+        encoder, source = cache_encoder(args, log)
         store = CooperativeDataset(args.data, "train").store
-        build_feature_cache(single.encoder.to(dev), store, ("train", "val"), args.work / "cache",
+        build_feature_cache(encoder.to(dev), store, ("train", "val"), args.work / "cache",
                             stride=CACHE_STRIDE, log=log, camera=camera)
+        write_cache_encoder(args.work / "cache", source, encoder.state_dict())
         return {}
     spec = dataclasses.replace(SPECS[args.stage], **dict(args.overrides))
+    if spec.name == EXTRAPOLATE:
+        check_cache_encoder(args, log)
     if camera and spec.distill_weight > 0:  # DiscoNet's teacher is early fusion: LiDAR only
         spec = dataclasses.replace(spec, distill_weight=0.0)
     if spec.yaw_jitter_deg and not (camera and spec.inputs == "points" and spec.max_agents == 1):
@@ -123,15 +140,20 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
                          "cannot use it (only a camera zoo's `single` stage)")
     cache = FeatureCache(args.work / "cache") if spec.inputs == "cache" else None
     raw = spec.inputs == "points" or spec.distill_weight > 0  # the encoder (or the teacher) runs on sensor data
+    extrapolate = spec.name == EXTRAPOLATE
     train = CooperativeDataset(args.data, "train", max_agents=spec.max_agents, delays=spec.delays, seed=args.seed,
-                               with_points=raw and not camera, with_images=raw and camera, stride=spec.stride)
+                               with_points=raw and not camera, with_images=raw and camera, stride=spec.stride,
+                               with_previous=extrapolate)
+    # (the extrapolate stage validates on late neighbours: its training delays, drawn alike every epoch)
     val = CooperativeDataset(args.data, "val", max_agents=5 if "late" in spec.methods or not spec.methods
                              else spec.max_agents,
                              egos="first", with_points=cache is None and not camera,
-                             with_images=cache is None and camera, stride=2)
+                             with_images=cache is None and camera, stride=2,
+                             delays=spec.delays if extrapolate else (0,), seed=args.seed, with_previous=extrapolate)
     model = build_stage_model(args, spec).to(dev)
     # the single-agent model: its encoder makes the wire features; with its heads, CAVs' late outputs
-    single = model if spec.name in ("single", "none") else build_stage_model(args, SPECS["none"])
+    # (the extrapolate stage reads every feature from the cache and scores no late method: it needs none)
+    single = model if spec.name in ("single", "none", EXTRAPOLATE) else build_stage_model(args, SPECS["none"])
     teacher = None
     if spec.distill_weight > 0:
         teacher = build_cooperative(args.encoder, "early", args.preset)
@@ -174,6 +196,9 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
         model.train()
         if spec.inputs == "cache":
             model.encoder.eval()
+        if extrapolate:  # the method's model stays in inference mode (frozen); only the add-on trains
+            model.eval()
+            model.extrapolation.train()
         train.epoch = epoch
         perm = np.random.default_rng([args.seed, epoch]).permutation(len(train))
         perm = np.resize(perm, steps_per_epoch * spec.batch)
@@ -207,6 +232,11 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
             summary = ", ".join(f"{m}: IoU veh {v['iou_vehicle']} road {v['iou_road']} lane {v['iou_lane']} "
                                 f"AP50 {v['ap50']} AP70 {v['ap70']}" for m, v in metrics.items())
             print(f"[{spec.name}] epoch {epoch + 1}/{spec.epochs} validation: {summary}", file=log, flush=True)
+            if extrapolate:
+                (m,) = spec.methods
+                without, with_ = metrics[m]["iou_vehicle"], metrics[f"{m}_extrapolated"]["iou_vehicle"]
+                print(f"[{spec.name}] {m} vehicle IoU, neighbours {min(spec.delays)}-{max(spec.delays)} frames late: "
+                      f"{without} without extrapolation, {with_} with it", file=log, flush=True)
         else:
             history.append({"epoch": epoch + 1, "loss": running, "validation": None})
         epoch, step = epoch + 1, 0
@@ -230,9 +260,46 @@ def batches(ds: CooperativeDataset, perm: np.ndarray, batch: int, first: int, st
                                             prefetch_factor=4, persistent_workers=False))
 
 
+def cache_encoder(args: TrainArgs, log) -> tuple[nn.Module, str]:
+    """The encoder that fills the feature cache, and where its weights come from: the `single` stage's
+    output under --work, or (when --work has none) the encoder of the zoo at --out, so that a cache can
+    be made for an existing zoo (e.g. to train `extrapolate` on top of it)."""
+    if stage_file(args, "single").is_file():
+        return build_stage_model(args, SPECS["none"]).encoder, str(stage_file(args, "single"))
+    entry = zoo.zoo_entry(args.encoder, args.preset, args.out)
+    path = None if entry is None else zoo.method_file(entry, "encoder", args.out, args.encoder, args.preset)
+    if path is None:  # neither: the usual "train single first" error
+        load_stage_state(args, "single")
+    torch.manual_seed(args.seed)
+    encoder = build_cooperative(args.encoder, "none", args.preset).encoder
+    encoder.load_state_dict(_prefixed(zoo_state(args, "encoder"), "encoder."))
+    print(f"[cache] {stage_file(args, 'single')} does not exist: encoding with the zoo's encoder {path}",
+          file=log, flush=True)
+    return encoder, str(path)
+
+
+def check_cache_encoder(args: TrainArgs, log) -> None:
+    """The feature cache must come from the encoder the zoo's (--out) methods were trained on."""
+    cached = read_cache_encoder(args.work / "cache")
+    if cached is None:
+        print(f"[{EXTRAPOLATE}] {args.work / 'cache'} does not record its encoder (made before that was recorded): "
+              "assuming it is the zoo's", file=log, flush=True)
+        return
+    mine = encoder_fingerprint(_prefixed(zoo_state(args, "encoder"), "encoder."))
+    if cached["fingerprint"] != mine:
+        raise ValueError(f"{args.work / 'cache'}: made by the encoder of {cached['source']}, not by the encoder of "
+                         f"the zoo at {args.out} whose methods this stage extends; rebuild the cache for this zoo "
+                         f"(`v2vsim train --stage cache --out {args.out}` with a --work without single/final.pt) "
+                         "or use the zoo trained with this --work")
+
+
 def export(args: TrainArgs, spec: StageSpec, state: dict, history: list, wall_s: float, manifest: dict) -> Path:
-    """Write the stage's checkpoint into the zoo and its manifest entry."""
+    """Write the stage's checkpoint into the zoo and its manifest entry (the extrapolate stage: an add-on
+    file "<method>_extrapolate.pt" under the zoo entry's "extrapolation", beside the method's own file)."""
+    extrapolate = spec.name == EXTRAPOLATE
     name = "single.pt" if spec.name == "single" else f"{spec.name}.pt"
+    if extrapolate:
+        name = f"{spec.methods[0]}_{EXTRAPOLATE}.pt"
     path = args.out / zoo.zoo_name(args.encoder, args.preset) / name
     config = {"spec": dataclasses.asdict(spec), "seed": args.seed, "encoder": args.encoder, "preset": args.preset}
     zoo.save_checkpoint(path, state, encoder=args.encoder, preset=args.preset, stage=spec.name,
@@ -247,8 +314,14 @@ def export(args: TrainArgs, spec: StageSpec, state: dict, history: list, wall_s:
         "wall_s": round(wall_s, 1), "device": args.device, "threads": args.threads,
         "validation": history[-1]["validation"] if history else None,
     }
-    zoo.register(path, encoder=args.encoder, preset=args.preset, methods=list(spec.methods), info=info,
-                 root=args.out, provides_encoder=spec.name == "single")
+    if extrapolate:  # the checkpoint it was trained on top of (build_extrapolation refuses another one)
+        entry = zoo.zoo_entry(args.encoder, args.preset, args.out)
+        base = zoo.method_file(entry, spec.methods[0], args.out, args.encoder, args.preset)
+        info["extrapolates"] = {"method": spec.methods[0], "file": base.name,
+                                "sha256": entry["files"][base.name]["sha256"]}
+    zoo.register(path, encoder=args.encoder, preset=args.preset, methods=[] if extrapolate else list(spec.methods),
+                 info=info, root=args.out, provides_encoder=spec.name == "single",
+                 extrapolates=tuple(spec.methods) if extrapolate else ())
     return path
 
 

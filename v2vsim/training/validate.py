@@ -7,13 +7,14 @@ import numpy as np
 import torch
 from torch import nn
 
-from v2vsim.data.torch_dataset import CooperativeDataset
+from v2vsim.data.torch_dataset import CooperativeDataset, collate
 from v2vsim.evaluation.fuse_and_score import box_iou, fuse_and_score
 from v2vsim.evaluation.metrics import ApAccumulator, MethodScore
 from v2vsim.perception.encode import encode_points, late_outputs
 from v2vsim.perception.fuse import FusionInputs
 from v2vsim.training.cache import FeatureCache
-from v2vsim.training.stages import StageSpec
+from v2vsim.training.extrapolate import extrapolate_features
+from v2vsim.training.stages import EXTRAPOLATE, StageSpec
 
 
 def validate(spec: StageSpec, model: nn.Module, single: nn.Module, ds: CooperativeDataset,
@@ -26,6 +27,8 @@ def validate(spec: StageSpec, model: nn.Module, single: nn.Module, ds: Cooperati
     models = {m: model for m in spec.methods} if spec.methods else {"none": model, "late": model}
     idx = np.linspace(0, len(ds) - 1, min(n, len(ds))).round().astype(int)
     try:
+        if spec.name == EXTRAPOLATE:
+            return evaluate_extrapolation(model, spec.methods[0], ds, [int(i) for i in idx], cache)
         return evaluate_samples(models, single, ds, [int(i) for i in idx], cache)
     finally:
         model.to(dev)
@@ -67,4 +70,27 @@ def evaluate_samples(models: dict[str, nn.Module], single: nn.Module, ds: Cooper
         gt = {"dynamic": s["dynamic"].numpy(), "visible": s["vehicle"].numpy(), "road": s["road"].numpy(),
               "lane": s["lane"].numpy()}
         fuse_and_score(models, inp, gt["road"].shape[0], gt, s["boxes"].numpy(), scores)
+    return {m: sc.to_json(box_iou) for m, sc in scores.items()}
+
+
+@torch.no_grad()
+def evaluate_extrapolation(model: nn.Module, method: str, ds: CooperativeDataset, idx: list[int],
+                           cache: FeatureCache) -> dict[str, dict]:
+    """Scores of `method` (a model with an `.extrapolation` module) on with_previous samples of late
+    neighbours, as they arrive ("<method>") and with every late message extrapolated first
+    ("<method>_extrapolated"); both through the ego's own scoring on the same samples."""
+    plain, extra = f"{method}", f"{method}_extrapolated"
+    scores = {m: MethodScore(boxes=ApAccumulator()) for m in (plain, extra)}
+    for i in idx:
+        s = ds[i]
+        inp = sample_fusion_inputs(s, model, cache, late=False)
+        gt = {"dynamic": s["dynamic"].numpy(), "visible": s["vehicle"].numpy(), "road": s["road"].numpy(),
+              "lane": s["lane"].numpy()}
+        cells, boxes = gt["road"].shape[0], s["boxes"].numpy()
+        fuse_and_score({method: model}, inp, cells, gt, boxes, {method: scores[plain]})
+        feats = torch.from_numpy(np.stack([inp.features[c] for c in s["agents"]]))[None]  # [1, L, C, F, F]
+        moved = extrapolate_features(model.extrapolation, feats, collate([s]), cache, model.bev_size_m)[0]
+        compensated = FusionInputs(senders=inp.senders, rel_poses=inp.rel_poses,
+                                   features={c: moved[j].numpy() for j, c in enumerate(s["agents"])})
+        fuse_and_score({method: model}, compensated, cells, gt, boxes, {method: scores[extra]})
     return {m: sc.to_json(box_iou) for m, sc in scores.items()}

@@ -148,3 +148,31 @@ def test_traffic_for_another_request_is_simulated_again(tmp_path) -> None:
     (tmp_path / "traffic" / "worlds.jsonl.gz").write_bytes(b"not gzip")
     with pytest.raises(DatasetError, match="recorded traffic unreadable"):
         load_traffic(tmp_path, 3, sc.overrides)
+
+
+def test_with_previous_adds_each_agents_previous_message_and_changes_nothing_else(tiny_dataset) -> None:
+    plain = CooperativeDataset(tiny_dataset, "train", delays=(1,), with_points=False)
+    prev = CooperativeDataset(tiny_dataset, "train", delays=(1,), with_points=False, with_previous=True)
+    assert "prev_frames" not in plain[0]
+    for i in range(len(prev)):
+        a, b = plain[i], prev[i]
+        assert set(b) - set(a) == {"prev_frames", "prev_rel_poses"}
+        assert all(torch.equal(a[k], b[k]) if isinstance(a[k], torch.Tensor) else a[k] == b[k] for k in a)
+        key = b["key"]
+        with np.load(frame_path(tiny_dataset / key.run, key.frame)) as f:
+            cavs_now = [str(c) for c in f["cavs"]]
+        for j, (c, k, p) in enumerate(zip(b["agents"], b["agent_frames"], b["prev_frames"], strict=True)):
+            assert c in cavs_now
+            if k == 0:
+                assert p == -1 and not b["prev_rel_poses"][j].any()
+                continue
+            assert p == k - 1
+            run = tiny_dataset / key.run
+            with np.load(frame_path(run, k)) as g, np.load(frame_path(run, p)) as h:
+                at = [str(x) for x in g["cavs"]].index(c)
+                before = [str(x) for x in h["cavs"]].index(c)
+                want = relative_pose(Pose(*map(float, g["poses"][at])), Pose(*map(float, h["poses"][before])))
+            assert np.allclose(b["prev_rel_poses"][j].numpy(), want, atol=1e-5)
+    batch = collate([prev[len(prev) - 1], prev[0]])
+    assert batch["prev_rel_poses"].shape == batch["rel_poses"].shape
+    assert batch["prev_frames"] == [prev[len(prev) - 1]["prev_frames"], prev[0]["prev_frames"]]
