@@ -68,7 +68,7 @@ def collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str], 
             inboxes[kind].offer(msg, len(data), send_time, distance(msg.sender_pose, ego_then.as_tuple()),
                                 receiver_pose=ego_then.as_tuple(), world=world)  # geometry for comm.channel tr37885
     ego_pose = ego_poses[k]
-    compensate = args.scenario.comm.compensation == "on"
+    compensate = args.scenario.comm.compensation
     # fuse at the deadline, as of the frame's capture instant: a message of frame k that arrived by then is aligned
     deadline = now + args.scenario.comm.fusion_deadline_ms / 1000.0
     fusable = {kind: inboxes[kind].ready(deadline, as_of=now) for kind in kinds}

@@ -380,9 +380,10 @@ def _scores(m: dict) -> dict:
 
 def test_lockstep_runs_are_deterministic_for_a_seed_pipelined_or_not(tmp_path: Path) -> None:
     """Strict lockstep (pipeline 0) and the driver + CAVs running 3 frames ahead of the ego give the
-    same scores, with loss, jitter and pose noise on and CAVs in range."""
+    same scores, with loss, jitter, pose noise and the fusion deadline on and CAVs in range."""
     args = ["--frames", "10", "--set", "cavs.count=3", "--set", "comm.range_m=300", "--methods", "none,late,cobevt",
-            "--set", "comm.drop.p=0.3", "--set", "comm.latency_ms={mean: 60, jitter: 30}",
+            "--set", "comm.drop.p=0.3", "--set", "comm.latency_ms={mean: 20, jitter: 30}",
+            "--set", "comm.fusion_deadline_ms=50", "--set", "comm.compensation=true",
             "--set", "comm.pose_noise={xy_std_m: 0.3, yaw_std_deg: 1.0}", "--set", "output.rerun=false"]
     a = Run(*args, "--set", "transport.pipeline=0", "--out", str(tmp_path / "a"))
     b = Run(*args, "--set", "transport.pipeline=3", "--out", str(tmp_path / "b"))
@@ -392,6 +393,9 @@ def test_lockstep_runs_are_deterministic_for_a_seed_pipelined_or_not(tmp_path: P
     assert _scores(ma) == _scores(mb)
     assert ma["comm"] == mb["comm"]
     assert ma["comm"]["dropped"] > 0 and ma["comm"]["delivered"] > 0
+    # 20 +- 30 ms latency + 39 ms of serialisation: some feature messages made the 50 ms deadline (fused
+    # aligned), some did not (a frame old or more)
+    assert {"0", "100"} <= set(ma["comm"]["age_ms"]["buckets"])
     # every process says where its time went (v2vsim bench run reads these)
     assert {"fusion.cobevt", "decoding.cobevt", "scoring", "ground_truth"} <= set(ma["timing"]["ms_per_frame"])
     cav = json.loads((tmp_path / "b" / "timing" / "cav.cav1.json").read_text())
@@ -435,3 +439,21 @@ def test_a_run_with_comm_share_topk_sends_sparse_features(tmp_path: Path) -> Non
     per_message = m["comm"]["bytes_per_message"]
     assert 102 * (64 * 2 + 2) < per_message < dense / 7  # 102 of 1024 cells, 130 bytes each, plus headers
     assert m["methods"]["cobevt"]["iou_vehicle"] is not None
+
+
+def test_compensation_with_zero_latency_changes_nothing(tmp_path: Path) -> None:
+    """With no latency every message is fused aligned (age 0), so compensated late fusion equals plain late
+    fusion exactly; with the shipped 27 Mbps link late fusion's outputs come a frame old and get moved."""
+    args = ["--frames", "8", "--set", "comm.range_m=300", "--methods", "none,late", "--set", "output.rerun=false"]
+    ideal = ["--set", "comm.bandwidth_mbps=null"]
+    runs = {name: Run(*args, *extra, "--out", str(tmp_path / name)) for name, extra in [
+        ("off", ideal), ("on", [*ideal, "--set", "comm.compensation=true"]),
+        ("late_off", []), ("late_on", ["--set", "comm.compensation=true"])]}
+    assert all(r.finish() == 0 for r in runs.values()), "".join(x for r in runs.values() for x in r.log)
+    m = {name: _metrics(tmp_path / name) for name in runs}
+    assert m["on"]["comm"]["by_kind"]["outputs"]["age_ms"]["buckets"] == {"0": m["on"]["comm"]["by_kind"]["outputs"]
+                                                                          ["age_ms"]["fused"]}
+    assert _scores(m["on"]) == _scores(m["off"])
+    assert set(m["late_on"]["comm"]["by_kind"]["outputs"]["age_ms"]["buckets"]) == {"100"}
+    assert _scores(m["late_on"])["methods"]["none"] == _scores(m["late_off"])["methods"]["none"]
+    assert _scores(m["late_on"])["methods"]["late"] != _scores(m["late_off"])["methods"]["late"]

@@ -175,9 +175,9 @@ class CommConfig:
     # k that made it is fused aligned, as of t_k (docs/run.md "Time at the receiver"). 50 ms: half a 10 Hz frame,
     # the wait a receiver can afford while its own sensing and encoding run, leaving the rest for fusion.
     fusion_deadline_ms: float = _f(50.0, ">= 0 and less than one frame (1000 / rate_hz ms)", _nonneg)
-    # on: late fusion's neighbour outputs are moved by each object's velocity (model-free), and methods whose zoo
-    # ships a trained extrapolation module use it on late features (learned); docs/run.md lists which.
-    compensation: Literal["off", "on"] = "off"
+    # true: late fusion's neighbour outputs are moved by each object's velocity (model-free), and methods whose zoo
+    # ships a trained extrapolation module use it on late features (learned); docs/run.md says which.
+    compensation: bool = False
     pose_noise: PoseNoiseConfig = field(default_factory=PoseNoiseConfig)
     compression: Literal["none", "zlib"] = "none"
     channel_compression: int = _f(1, "1 (off) or a reduction ratio such as 8, 16, 32, 64", _pos)

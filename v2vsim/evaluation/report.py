@@ -139,7 +139,8 @@ def report_md(doc: dict, summary: RunSummary) -> str:
               "", f"Channel: range {sc.comm.range_m:g} m, latency {sc.comm.latency_ms.mean:g} ± "
               f"{sc.comm.latency_ms.jitter:g} ms ({sc.comm.latency_ms.distribution}), drop {sc.comm.drop.model} "
               f"p={sc.comm.drop.p:g}, bandwidth {sc.comm.bandwidth_mbps} Mbps, max age {sc.comm.max_age_ms:g} ms, "
-              f"fusion deadline {sc.comm.fusion_deadline_ms:g} ms, compensation {sc.comm.compensation}, "
+              f"fusion deadline {sc.comm.fusion_deadline_ms:g} ms, "
+              f"compensation {'on' if sc.comm.compensation else 'off'}, "
               f"pose noise {sc.comm.pose_noise.xy_std_m:g} m / {sc.comm.pose_noise.yaw_std_deg:g}°.",
               *_link_states_md(doc, summary),
               *_medium_md(doc),
