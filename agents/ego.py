@@ -41,6 +41,7 @@ from agents.timing import StageTimer
 from v2vsim.comm.inbox import Inbox
 from v2vsim.comm.stats import CommStats
 from v2vsim.comm.wire_spec import EgoDecoder, ego_wire_spec
+from v2vsim.config import Scenario
 from v2vsim.evaluation.fuse_and_score import box_iou, predict_all
 from v2vsim.evaluation.gt import bev_ground_truth, gt_boxes
 from v2vsim.evaluation.metrics import ApAccumulator, MethodScore, cavs_in_range
@@ -48,11 +49,13 @@ from v2vsim.evaluation.report import RunSummary, write_outputs
 from v2vsim.perception.build import (
     build_agent_encoder,
     build_compressor,
+    build_extrapolation,
     build_method_models,
     decompress,
     method_checkpoints,
     runnable_methods,
 )
+from v2vsim.perception.extrapolate import extrapolate_features
 from v2vsim.recording.recorder import Recorder
 from v2vsim.recording.scan import max_scan_bytes
 from v2vsim.sensors.scene import build_map_assets
@@ -60,6 +63,16 @@ from v2vsim.world.geometry import Pose
 from v2vsim.world.serialize import static_from_bytes, world_from_bytes
 
 MAX_VIS_BYTES = 1 << 20  # the visible-ids side channel: a few hundred ids
+
+
+def compensation_schemes(sc: Scenario, methods: list[str], extrapolations: dict[str, object]) -> dict[str, str]:
+    """What compensates each method's late messages under comm.compensation (the report and metrics.json say it)."""
+    if not sc.comm.compensation:
+        return {}
+    out = {m: "learned feature extrapolation (FFNet, the zoo's extrapolate stage)" for m in extrapolations}
+    if "late" in methods:
+        out["late"] = "model-free: boxes and vehicle map moved by object velocity"
+    return out
 
 
 def ego_loop(args: AgentArgs, bus: Bus) -> int:
@@ -73,6 +86,8 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
         ["outputs"] if "late" in methods else [])
     encoder = build_agent_encoder(sc)
     models = build_method_models(sc, encoder, runnable_methods(sc))
+    # comm.compensation: each intermediate method whose zoo ships a trained extrapolation (never a random one)
+    extrapolations = {m: e for m in models if sc.comm.compensation and (e := build_extrapolation(sc, m)) is not None}
     static = static_from_bytes(bus.fetch("static", "main", START_TIMEOUT_S))
     assets = build_map_assets(static)
     c, f = encoder.out_channels, encoder.out_cells
@@ -99,7 +114,8 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
     checkpoints = method_checkpoints(sc, tuple(models))
     summary = RunSummary(scenario=sc, ego=me, methods=list(models),
                          untrained=all(v is None for v in checkpoints.values()), checkpoints=checkpoints,
-                         skipped=[m for m in methods if m not in models])
+                         skipped=[m for m in methods if m not in models],
+                         compensation=compensation_schemes(sc, list(models), extrapolations))
     timer = StageTimer()
     after = AfterFusion(scores, recorder, timer)
     bus.ready()
@@ -155,6 +171,12 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
                 events = {kind: ib.take_events() for kind, ib in inboxes.items()}
                 links = events["features"]  # the message every method fuses: what the links show
                 inp.features = {s: decompress(compressor, v) for s, v in inp.features.items()}
+            if extrapolations:
+                with timer.stage("compensation"):
+                    inp.previous_features = {s: (decompress(compressor, old), rel, gap)
+                                             for s, (old, rel, gap) in inp.previous_features.items()}
+                    inp.extrapolated = {m: extrapolate_features(e, inp, sc.bev.size_m)
+                                        for m, e in extrapolations.items()}
             with timer.stage("ground_truth"):
                 gt = bev_ground_truth(world, me, sc.bev, visible, assets=assets)
                 boxes_gt, ids = gt_boxes(world, me, sc.bev)

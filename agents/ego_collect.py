@@ -83,6 +83,16 @@ def collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str], 
             if kind == "features":
                 # float16 [C/r, F, F] (a sparse message scattered back); decompress() makes it float32 [C, F, F]
                 inp.features[s] = dense_payload(msg, decoder.spec["features"].payload)
+                prev = inboxes[kind].previous(s) if compensate and s != me else None
+                if prev is not None and msg.capture_time > now - 1e-9:
+                    prev = None  # fused aligned: nothing to compensate
+                if prev is not None:
+                    inp.feature_ages[s] = now - msg.capture_time
+                    prev_pose = np.add(prev.sender_pose, np.subtract((x, y, z, yaw), msg.sender_pose))  # same error
+                    inp.previous_features[s] = (dense_payload(prev, decoder.spec["features"].payload),
+                                                np.asarray(relative_pose(Pose(x, y, z, yaw), Pose(*prev_pose)),
+                                                           np.float32),
+                                                msg.capture_time - prev.capture_time)
             elif kind == "points":
                 inp.points[s] = msg.payload.astype(np.float32)
             else:

@@ -37,6 +37,7 @@ class RunSummary:
     neighbours: list[int] = field(default_factory=list)  # per fused frame: other CAVs within comm.range_m
     checkpoints: dict[str, str | None] = field(default_factory=dict)  # method -> zoo file (None: random init)
     timing: dict = field(default_factory=dict)  # the ego's StageTimer.to_json(): ms per frame by stage
+    compensation: dict[str, str] = field(default_factory=dict)  # method -> how its late messages are compensated
 
 
 def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: CommStats,
@@ -63,6 +64,7 @@ def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: Comm
         "preset": sc.perception.preset,
         "weights": "untrained (seeded random init)" if summary.untrained else sc.perception.weights,
         "checkpoints": {m: summary.checkpoints.get(m) for m in summary.methods},
+        "compensation": {m: summary.compensation.get(m, "none") for m in summary.methods},
         "clock": sc.transport.clock,
         "neighbours_in_range": neighbour_shares(summary.neighbours, sc.cavs.count),
         "ap_sort": sc.evaluation.ap_sort,
@@ -111,6 +113,11 @@ def report_md(doc: dict, summary: RunSummary) -> str:
     if summary.skipped:
         lines += ["", f"Not run with {sc.perception.modality} input: {', '.join(summary.skipped)} "
                   "(early fusion ships raw LiDAR points)."]
+    if sc.comm.compensation:
+        done = ", ".join(f"{m}: {how}" for m, how in summary.compensation.items())
+        rest = [m for m in summary.methods if m not in summary.compensation]
+        lines += ["", f"Latency compensation (`comm.compensation: true`): {done or 'no method could be compensated'}"
+                  + (f"; uncompensated: {', '.join(rest)}." if rest else ".")]
     if summary.lost_agents:
         lines += ["", "Lost agents: " + ", ".join(f"{c} (frame {f})" for c, f in sorted(summary.lost_agents.items()))]
     lines += ["", "## Methods", "",

@@ -25,6 +25,14 @@ class FusionInputs:
     features: dict[str, np.ndarray] = field(default_factory=dict)  # sender -> [C, F, F]
     points: dict[str, np.ndarray] = field(default_factory=dict)  # sender -> [P, 4] body frame
     outputs: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # sender -> (maps, boxes)
+    # Learned latency compensation (comm.compensation, v2vsim.perception.extrapolate): per neighbour whose
+    # features are late, the age (s) of its message at the fused frame's instant and its message before
+    # (features, that capture's (dx, dy, dyaw) in the newer capture's frame, seconds between the two) ...
+    feature_ages: dict[str, float] = field(default_factory=dict)
+    previous_features: dict[str, tuple[np.ndarray, np.ndarray, float]] = field(default_factory=dict)
+    # ... and, per method with a trained extrapolation, its features extrapolated to that instant, which that
+    # method fuses instead: method -> sender -> [C, F, F]
+    extrapolated: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -79,7 +87,8 @@ def predict(method: str, model: nn.Module, inp: FusionInputs, cells: int) -> Pre
         if method == "none" or not is_intermediate(method):
             fused = torch.from_numpy(inp.features[ego])[None]
         else:
-            names, feats = _stack(inp, inp.features)  # [L, C, F, F]
+            table = {**inp.features, **inp.extrapolated.get(method, {})}
+            names, feats = _stack(inp, table)  # [L, C, F, F]
             valid = torch.ones(1, len(names), dtype=torch.bool)
             fused = model.fuse(feats[None], _poses(inp, names)[None], valid)
     t_fused = time.perf_counter()

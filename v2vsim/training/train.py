@@ -37,7 +37,7 @@ from torch import Tensor, nn
 from models import zoo
 from models.heads import AnchorTargetAssigner
 from models.registry import MODALITY, build_cooperative
-from v2vsim.data.layout import runs_of
+from v2vsim.data.layout import DatasetError, runs_of
 from v2vsim.data.torch_dataset import CooperativeDataset, collate, tensor_inputs
 from v2vsim.training.augment import yaw_rotate_batch
 from v2vsim.training.cache import (
@@ -132,7 +132,7 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
         return {}
     spec = dataclasses.replace(SPECS[args.stage], **dict(args.overrides))
     if spec.name == EXTRAPOLATE:
-        check_cache_encoder(args, log)
+        check_cache_encoder(args, spec, log)
     if camera and spec.distill_weight > 0:  # DiscoNet's teacher is early fusion: LiDAR only
         spec = dataclasses.replace(spec, distill_weight=0.0)
     if spec.yaw_jitter_deg and not (camera and spec.inputs == "points" and spec.max_agents == 1):
@@ -215,9 +215,10 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
                 losses["kd"] = spec.distill_weight * distill_loss(out["fused"], t_out["fused"])
                 losses["total"] = losses["total"] + losses["kd"]
             opt.zero_grad(set_to_none=True)
-            losses["total"].backward()
-            torch.nn.utils.clip_grad_norm_(params, 10.0)
-            opt.step()
+            if losses["total"].requires_grad:  # (extrapolate: a batch without a late message trains nothing)
+                losses["total"].backward()
+                torch.nn.utils.clip_grad_norm_(params, 10.0)
+                opt.step()
             sched.step()
             samples += spec.batch
             for k, v in losses.items():
@@ -278,8 +279,13 @@ def cache_encoder(args: TrainArgs, log) -> tuple[nn.Module, str]:
     return encoder, str(path)
 
 
-def check_cache_encoder(args: TrainArgs, log) -> None:
-    """The feature cache must come from the encoder the zoo's (--out) methods were trained on."""
+def check_cache_encoder(args: TrainArgs, spec: StageSpec, log) -> None:
+    """The extrapolate stage's inputs: the method in the zoo (--out), and a feature cache under --work made by
+    the encoder the zoo's methods were trained on."""
+    zoo_state(args, spec.methods[0])
+    if not (args.work / "cache" / "index.json").is_file():
+        raise DatasetError(f"{args.work / 'cache'}: no feature cache; make it first: `v2vsim train --data {args.data} "
+                           f"--stage cache --out {args.out} --work {args.work}`")
     cached = read_cache_encoder(args.work / "cache")
     if cached is None:
         print(f"[{EXTRAPOLATE}] {args.work / 'cache'} does not record its encoder (made before that was recorded): "

@@ -82,7 +82,7 @@ def test_extrapolate_stage_trains_only_the_addon_and_exports_it(tiny_dataset, tm
     assert torch.count_nonzero(last["extrapolation.net.4.weight"]) > 0  # zero-initialised, then trained
 
     entry = zoo.read_manifest(tmp_path / "zoo")["zoos"]["pointpillars_tiny"]
-    assert entry["methods"] == {"none": "none.pt", "late": "none.pt", "cobevt": "cobevt.pt"}
+    assert entry["methods"] == {"cobevt": "cobevt.pt"} and entry["encoder"] == "single.pt"
     assert entry["extrapolation"] == {"cobevt": "cobevt_extrapolate.pt"}
     info = entry["files"]["cobevt_extrapolate.pt"]
     assert info["stage"] == "extrapolate" and info["command"].startswith("v2vsim train")
@@ -100,7 +100,7 @@ def test_extrapolate_stage_trains_only_the_addon_and_exports_it(tiny_dataset, tm
     assert all(torch.equal(ext.state_dict()[k[len("extrapolation."):]], v) for k, v in saved["state_dict"].items())
     assert build_extrapolation(sc, "v2vnet") is None
     assert build_extrapolation(load_scenario("scenarios/intersection.yaml", ["perception.weights=none"])) is None
-    models = build_method_models(sc, build_agent_encoder(sc), ("none", "cobevt"))
+    models = build_method_models(sc, build_agent_encoder(sc), ("cobevt",))
     assert all(torch.equal(models["cobevt"].fusion.state_dict()[k[len("fusion."):]], v)
                for k, v in zoo_cobevt.items() if k.startswith("fusion."))
 
