@@ -442,9 +442,11 @@ def test_a_run_with_comm_share_topk_sends_sparse_features(tmp_path: Path) -> Non
 
 
 def test_compensation_with_zero_latency_changes_nothing(tmp_path: Path) -> None:
-    """With no latency every message is fused aligned (age 0), so compensated late fusion equals plain late
-    fusion exactly; with the shipped 27 Mbps link late fusion's outputs come a frame old and get moved."""
-    args = ["--frames", "8", "--set", "comm.range_m=300", "--methods", "none,late", "--set", "output.rerun=false"]
+    """With no latency every message is fused aligned (age 0), so compensated late fusion and CoBEVT (the zoo's
+    learned extrapolation) equal the uncompensated ones exactly; with the shipped 27 Mbps link late fusion's
+    outputs come a frame old and get moved, while feature messages still make the 50 ms deadline."""
+    args = ["--frames", "8", "--set", "comm.range_m=300", "--methods", "none,late,cobevt",
+            "--set", "output.rerun=false"]
     ideal = ["--set", "comm.bandwidth_mbps=null"]
     runs = {name: Run(*args, *extra, "--out", str(tmp_path / name)) for name, extra in [
         ("off", ideal), ("on", [*ideal, "--set", "comm.compensation=true"]),
@@ -456,4 +458,7 @@ def test_compensation_with_zero_latency_changes_nothing(tmp_path: Path) -> None:
     assert _scores(m["on"]) == _scores(m["off"])
     assert set(m["late_on"]["comm"]["by_kind"]["outputs"]["age_ms"]["buckets"]) == {"100"}
     assert _scores(m["late_on"])["methods"]["none"] == _scores(m["late_off"])["methods"]["none"]
+    assert set(m["late_on"]["comm"]["age_ms"]["buckets"]) == {"0"}  # 39 ms of serialisation < the 50 ms deadline
+    assert _scores(m["late_on"])["methods"]["cobevt"] == _scores(m["late_off"])["methods"]["cobevt"]
+    assert m["on"]["compensation"]["cobevt"].startswith("learned") and m["off"]["compensation"]["cobevt"] == "none"
     assert _scores(m["late_on"])["methods"]["late"] != _scores(m["late_off"])["methods"]["late"]

@@ -82,6 +82,12 @@ def test_override_parses_yaml_scalars(tmp_path: Path) -> None:
         ("cavs: {count: 2, ego: [cav1, cav2]}\n", [], ["cavs.ego[1]", "'cav2'", "cav0, cav1"]),
         ("seed: 1\n", ["cavs.ego=[cav0,cav0]"], ["cavs.ego[1]", "'cav0' is listed twice"]),
         ("- a\n- b\n", [], ["top level must be a mapping"]),
+        # issue 29: the fusion deadline lies within the frame
+        ("seed: 1\n", ["comm.fusion_deadline_ms=100"], ["comm.fusion_deadline_ms", "not less than one frame",
+                                                         "0 <= value < 100"]),
+        ("rate_hz: 20\n", ["comm.fusion_deadline_ms=60"], ["comm.fusion_deadline_ms", "0 <= value < 50"]),
+        ("seed: 1\n", ["comm.fusion_deadline_ms=-1"], ["comm.fusion_deadline_ms", ">= 0"]),
+        ("seed: 1\n", ["comm.compensation=maybe"], ["comm.compensation", "true/false"]),
     ],
 )
 def test_bad_input_names_file_key_and_allowed(tmp_path: Path, text: str, overrides: list[str],
