@@ -123,6 +123,7 @@ def check_scenario(sc: Scenario) -> None:
     if channels % ratio:
         raise ConfigError(f"{sc.source}: comm.channel_compression: {ratio} does not divide the {channels} feature "
                           f"channels of preset {sc.perception.preset!r}; allowed: a divisor of {channels}")
+    _check_compressor(sc)
     if not runnable_methods(sc):
         raise ConfigError(f"{sc.source}: perception.methods: nothing to run for modality "
                           f"{sc.perception.modality!r} (early fusion needs LiDAR)")
@@ -137,9 +138,24 @@ def build_compressor(sc: Scenario, channels: int) -> ChannelCompressor | None:
     ratio = sc.comm.channel_compression
     if ratio == 1:
         return None
+    _check_compressor(sc)
     _seed(sc, "compressor")
-    comp = ChannelCompressor(channels, ratio)  # not in the zoo yet: seeded random in every process
+    comp = ChannelCompressor(channels, ratio)  # only with random weights everywhere (perception.weights: none)
     return comp.eval()
+
+
+def _check_compressor(sc: Scenario) -> None:
+    """No zoo ships a trained compressor yet: behind trained encoders and fusion models a randomly initialised
+    one would make every intermediate method's result meaningless, silently. Refuse it; a run whose weights are
+    all random (perception.weights: none) may use one, and its report says the weights are untrained."""
+    ratio = sc.comm.channel_compression
+    if ratio == 1 or zoo_for(sc) is None:
+        return
+    name = zoo.zoo_name(sc.perception.encoder, sc.perception.preset)
+    raise ConfigError(f"{sc.source}: comm.channel_compression: {ratio}: the {name} zoo ships no trained compressor "
+                      f"for ratio {ratio}, and an untrained one behind trained fusion models would run silently; "
+                      "allowed with trained weights: 1 (no compression); with perception.weights: none, any divisor "
+                      "of the feature channels")
 
 
 @torch.no_grad()
