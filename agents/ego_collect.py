@@ -74,12 +74,19 @@ def collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str], 
     fusable = {kind: inboxes[kind].ready(deadline, as_of=now) for kind in kinds}
     senders = [me] + sorted({s for table in fusable.values() for s in table} - {me})
     rel = np.zeros((len(senders), 3), np.float32)
-    inp = FusionInputs(senders=senders, rel_poses=rel)
+    # each kind's own capture poses: a sender's outputs may be a frame older than its features, and a method
+    # must warp what it fuses with the pose that message was captured at
+    by_kind = {kind: np.zeros((len(senders), 3), np.float32) for kind in fusable}
+    inp = FusionInputs(senders=senders, rel_poses=rel, poses_by_kind=by_kind)
+    posed: set[int] = set()
     for kind, table in fusable.items():
         for s, msg in table.items():
             i = senders.index(s)
             x, y, z, yaw = inboxes[kind].sender_pose(msg)
-            rel[i] = relative_pose(ego_pose, Pose(x, y, z, yaw))
+            by_kind[kind][i] = relative_pose(ego_pose, Pose(x, y, z, yaw))
+            if i not in posed:  # rel_poses: the first kind's (features come first)
+                rel[i] = by_kind[kind][i]
+                posed.add(i)
             if kind == "features":
                 # float16 [C/r, F, F] (a sparse message scattered back); decompress() makes it float32 [C, F, F]
                 inp.features[s] = dense_payload(msg, decoder.spec["features"].payload)

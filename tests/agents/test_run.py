@@ -462,3 +462,17 @@ def test_compensation_with_zero_latency_changes_nothing(tmp_path: Path) -> None:
     assert _scores(m["late_on"])["methods"]["cobevt"] == _scores(m["late_off"])["methods"]["cobevt"]
     assert m["on"]["compensation"]["cobevt"].startswith("learned") and m["off"]["compensation"]["cobevt"] == "none"
     assert _scores(m["late_on"])["methods"]["late"] != _scores(m["late_off"])["methods"]["late"]
+
+
+def test_a_method_scores_the_same_whatever_other_methods_run(tmp_path: Path) -> None:
+    """On the shipped channel a sender's outputs (late fusion) arrive a frame after its features: CoBEVT must
+    still warp its features with the features' capture pose, so running late and early beside it changes
+    nothing for it (each method fuses with the poses of the messages it fuses)."""
+    args = ["--frames", "8", "--set", "comm.range_m=300", "--set", "output.rerun=false"]
+    a = Run(*args, "--methods", "none,cobevt", "--out", str(tmp_path / "a"))
+    b = Run(*args, "--methods", "none,late,early,cobevt", "--out", str(tmp_path / "b"))
+    assert a.finish() == 0 and b.finish() == 0, "".join(a.log + b.log)
+    ma, mb = _metrics(tmp_path / "a"), _metrics(tmp_path / "b")
+    assert set(mb["comm"]["by_kind"]["outputs"]["age_ms"]["buckets"]) == {"100"}  # outputs a frame old
+    assert set(ma["comm"]["age_ms"]["buckets"]) == {"0"}  # features aligned
+    assert _scores(ma)["methods"]["cobevt"] == _scores(mb)["methods"]["cobevt"]

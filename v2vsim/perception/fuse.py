@@ -22,6 +22,9 @@ class FusionInputs:
 
     senders: list[str]
     rel_poses: np.ndarray  # [L, 3] (dx, dy, dyaw) of each sender's capture pose in the ego's body frame
+    # The same per message kind ("features", "points", "outputs"), where a sender's messages of different kinds
+    # come from different frames (a late kind is older): each method warps with the poses of the kind it fuses.
+    poses_by_kind: dict[str, np.ndarray] = field(default_factory=dict)
     features: dict[str, np.ndarray] = field(default_factory=dict)  # sender -> [C, F, F]
     points: dict[str, np.ndarray] = field(default_factory=dict)  # sender -> [P, 4] body frame
     outputs: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # sender -> (maps, boxes)
@@ -48,9 +51,9 @@ def _stack(inp: FusionInputs, table: dict[str, np.ndarray]) -> tuple[list[str], 
     return names, torch.from_numpy(np.stack([table[s] for s in names]))
 
 
-def _poses(inp: FusionInputs, names: list[str]) -> Tensor:
+def _poses(inp: FusionInputs, names: list[str], kind: str) -> Tensor:
     idx = [inp.senders.index(s) for s in names]
-    return torch.from_numpy(inp.rel_poses[idx]).float()
+    return torch.from_numpy(inp.poses_by_kind.get(kind, inp.rel_poses)[idx]).float()
 
 
 @torch.no_grad()
@@ -64,7 +67,7 @@ def predict(method: str, model: nn.Module, inp: FusionInputs, cells: int) -> Pre
             return None
         names = [s for s in inp.senders if s in inp.outputs]
         maps = torch.from_numpy(np.stack([inp.outputs[s][0] for s in names]))  # [L, 3, S, S]
-        poses = _poses(inp, names)
+        poses = _poses(inp, names, "outputs")
         valid = torch.ones(len(names), dtype=torch.bool)
         merged = late_fuse_probabilities(maps, poses, valid, model.bev_size_m)  # [3, S, S]
         merged = resize_logits(merged[None], cells)[0]
@@ -79,7 +82,7 @@ def predict(method: str, model: nn.Module, inp: FusionInputs, cells: int) -> Pre
             return None
         names = [s for s in inp.senders if s in inp.points]
         clouds = [torch.from_numpy(inp.points[s]) for s in names]
-        merged = merge_points_to_ego(clouds, _poses(inp, names))
+        merged = merge_points_to_ego(clouds, _poses(inp, names, "points"))
         fused = model.encoder([merged])
     else:
         if ego not in inp.features:
@@ -90,7 +93,7 @@ def predict(method: str, model: nn.Module, inp: FusionInputs, cells: int) -> Pre
             table = {**inp.features, **inp.extrapolated.get(method, {})}
             names, feats = _stack(inp, table)  # [L, C, F, F]
             valid = torch.ones(1, len(names), dtype=torch.bool)
-            fused = model.fuse(feats[None], _poses(inp, names)[None], valid)
+            fused = model.fuse(feats[None], _poses(inp, names, "features")[None], valid)
     t_fused = time.perf_counter()
     out = model.heads(fused)
     dyn, stat = resize_logits(out["dynamic"], cells), resize_logits(out["static"], cells)
