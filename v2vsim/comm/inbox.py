@@ -78,7 +78,7 @@ class Inbox:
         self._pending: dict[str, list[Arrival]] = {}
         self._latest: dict[str, Arrival] = {}  # the newest fused-or-fusable message per sender
         self._previous: dict[str, Message] = {}  # the one _latest replaced, per sender
-        self._fused: set[tuple[str, int]] = set()  # (sender, frame) whose send-to-fuse latency is recorded
+        self._fused: set[tuple[str, int]] = set()  # (sender, frame) whose channel latency is recorded
         self._events: dict[str, LinkEvent] = {}  # per sender, since the last take_events()
         self.bytes_this_frame = 0
         self.medium: SharedMedium[_OnAir] | None = None
@@ -187,6 +187,7 @@ class Inbox:
                     self.stats.record_stale()
                     self._events.setdefault(sender, LinkEvent(sender, "stale"))
                 del self._latest[sender]  # counted once; an older message never comes back
+                self._previous.pop(sender, None)  # nor its predecessor: compensation needs two recent messages
                 continue
             out[sender] = a.message
             if sender == self.receiver:
