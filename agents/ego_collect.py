@@ -70,7 +70,7 @@ def collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str], 
     ego_pose = ego_poses[k]
     compensate = args.scenario.comm.compensation
     # fuse at the deadline, as of the frame's capture instant: a message of frame k that arrived by then is aligned
-    deadline = now + args.scenario.comm.fusion_deadline_ms / 1000.0
+    deadline = now + args.scenario.fusion_deadline_s
     fusable = {kind: inboxes[kind].ready(deadline, as_of=now) for kind in kinds}
     senders = [me] + sorted({s for table in fusable.values() for s in table} - {me})
     rel = np.zeros((len(senders), 3), np.float32)

@@ -32,7 +32,7 @@ def _check_cross_fields(sc: Scenario, loader: _Loader) -> None:
         loader.fail("comm.share.policy", "'topk' in a run needs one ego (cavs.ego: first or one id): an ego keeps "
                     "its whole map, so its broadcast cannot serve other egos; v2vsim.env scores every CAV as a "
                     "receiver")
-    if sc.comm.fusion_deadline_ms >= 1000.0 / sc.rate_hz:
+    if sc.comm.fusion_deadline_ms is not None and sc.comm.fusion_deadline_ms >= 1000.0 / sc.rate_hz:
         loader.fail("comm.fusion_deadline_ms", f"{sc.comm.fusion_deadline_ms:g} ms is not less than one frame "
                     f"({1000.0 / sc.rate_hz:g} ms at rate_hz {sc.rate_hz:g}): frame k must be fused before frame k+1; "
                     f"allowed: 0 <= value < {1000.0 / sc.rate_hz:g}")

@@ -172,9 +172,11 @@ class CommConfig:
     bandwidth_mbps: float | None = _f(27.0, "> 0 or null (unlimited)", _pos)
     max_age_ms: float = _f(500.0, "> 0", _pos)
     # The ego fuses frame k at t_k + fusion_deadline_ms with every message that has arrived by then; one of frame
-    # k that made it is fused aligned, as of t_k (docs/run.md "Time at the receiver"). 50 ms: half a 10 Hz frame,
-    # the wait a receiver can afford while its own sensing and encoding run, leaving the rest for fusion.
-    fusion_deadline_ms: float = _f(50.0, ">= 0 and less than one frame (1000 / rate_hz ms)", _nonneg)
+    # k that made it is fused aligned, as of t_k (docs/run.md "Time at the receiver"). null: half a frame (50 ms
+    # at 10 Hz), the wait a receiver can afford while its own sensing and encoding run, leaving the rest for
+    # fusion (Scenario.fusion_deadline_s).
+    fusion_deadline_ms: float | None = _f(None, ">= 0 and less than one frame (1000 / rate_hz ms), or null "
+                                          "(half a frame)", _nonneg)
     # true: late fusion's neighbour outputs are moved by each object's velocity (model-free), and methods whose zoo
     # ships a trained extrapolation module use it on late features (learned); docs/run.md says which.
     compensation: bool = False
@@ -249,4 +251,10 @@ class Scenario:
     @property
     def dt(self) -> float:
         return 1.0 / self.rate_hz
+
+    @property
+    def fusion_deadline_s(self) -> float:
+        """How long after a frame's capture the ego fuses it: comm.fusion_deadline_ms, or half a frame."""
+        ms = self.comm.fusion_deadline_ms
+        return 0.5 * self.dt if ms is None else ms / 1000.0
 

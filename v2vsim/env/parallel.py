@@ -320,7 +320,7 @@ class CooperativePerceptionEnv(ParallelEnv):
                 continue
             inbox.offer(msg, len(data), msg.capture_time, distance(msg.sender_pose, me.as_tuple()),
                         receiver_pose=me.as_tuple(), world=world)
-        deadline = world.time + self._episode_sc.comm.fusion_deadline_ms / 1000.0  # as the ego does (docs/run.md)
+        deadline = world.time + self._episode_sc.fusion_deadline_s  # as the ego does (docs/run.md)
         fusable = inbox.ready(deadline, as_of=world.time)
         for ev in inbox.take_events():
             self._note_link(ev.sender, j, ev.outcome, ev.latency_ms)

@@ -142,11 +142,11 @@ def report_md(doc: dict, summary: RunSummary) -> str:
               + (f" ({c['rejected_reasons']})" if c["rejected"] else "")
               + f"; {c['bytes_per_message']} bytes per message; channel time of fused messages (serialisation "
               f"and latency) p50 {lat['p50']} ms, p95 {lat['p95']} ms.",
-              *_age_md(doc, sc.comm.fusion_deadline_ms),
+              *_age_md(doc, 1000.0 * sc.fusion_deadline_s),
               "", f"Channel: range {sc.comm.range_m:g} m, latency {sc.comm.latency_ms.mean:g} ± "
               f"{sc.comm.latency_ms.jitter:g} ms ({sc.comm.latency_ms.distribution}), drop {sc.comm.drop.model} "
               f"p={sc.comm.drop.p:g}, bandwidth {sc.comm.bandwidth_mbps} Mbps, max age {sc.comm.max_age_ms:g} ms, "
-              f"fusion deadline {sc.comm.fusion_deadline_ms:g} ms, "
+              f"fusion deadline {1000.0 * sc.fusion_deadline_s:g} ms, "
               f"compensation {'on' if sc.comm.compensation else 'off'}, "
               f"pose noise {sc.comm.pose_noise.xy_std_m:g} m / {sc.comm.pose_noise.yaw_std_deg:g}°.",
               *_link_states_md(doc, summary),

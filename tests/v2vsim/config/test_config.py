@@ -189,3 +189,12 @@ def test_share_topk_needs_one_ego_in_a_run() -> None:
         load_scenario("scenarios/intersection.yaml", ["comm.share.policy=topk", "cavs.ego=all"])
     with pytest.raises(ConfigError, match="comm.share.fraction"):
         load_scenario("scenarios/intersection.yaml", ["comm.share.fraction=1.5"])
+
+
+def test_the_fusion_deadline_defaults_to_half_a_frame(tmp_path: Path) -> None:
+    sc = load_scenario(_write(tmp_path, "traffic: {backend: highway-env}\n"))
+    assert sc.comm.fusion_deadline_ms is None and sc.fusion_deadline_s == pytest.approx(0.05)  # 10 Hz
+    fast = load_scenario(_write(tmp_path, "traffic: {backend: highway-env}\nrate_hz: 1000\n"))
+    assert fast.fusion_deadline_s == pytest.approx(0.0005)
+    assert load_scenario(_write(tmp_path, "traffic: {backend: highway-env}\n"), ["comm.fusion_deadline_ms=0"]
+                         ).fusion_deadline_s == 0.0
