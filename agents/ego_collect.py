@@ -95,9 +95,9 @@ def collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str], 
                     prev = None  # fused aligned: nothing to compensate
                 if prev is not None:
                     inp.feature_ages[s] = now - msg.capture_time
-                    prev_pose = np.add(prev.sender_pose, np.subtract((x, y, z, yaw), msg.sender_pose))  # same error
                     inp.previous_features[s] = (dense_payload(prev, decoder.spec["features"].payload),
-                                                np.asarray(relative_pose(Pose(x, y, z, yaw), Pose(*prev_pose)),
+                                                np.asarray(relative_pose(Pose(x, y, z, yaw),
+                                                                         _pose_as_known(prev, msg, (x, y, z, yaw))),
                                                            np.float32),
                                                 msg.capture_time - prev.capture_time)
             elif kind == "points":
@@ -113,14 +113,11 @@ def collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str], 
 def _moved_outputs(outputs: tuple[np.ndarray, np.ndarray], msg: Message, pose: tuple[float, ...],
                    prev: Message | None, age_s: float, bev_size_m: float) -> tuple[np.ndarray, np.ndarray]:
     """comm.compensation on, late fusion: a neighbour's maps and boxes moved by each object's velocity from its
-    two latest output messages (v2vsim.perception.motion). The older message's pose gets the same pose error as
-    the newer one (a receiver's error in a sender's pose changes little within a few frames)."""
+    two latest output messages (v2vsim.perception.motion)."""
     if prev is None:
         return outputs
-    err = np.subtract(pose, msg.sender_pose)
-    prev_pose = tuple(float(v) for v in np.add(prev.sender_pose, err))
-    old = OutputMessage(prev.payload.astype(np.float32), prev.extras["boxes"].astype(np.float32), prev_pose,
-                        prev.capture_time)
+    old = OutputMessage(prev.payload.astype(np.float32), prev.extras["boxes"].astype(np.float32),
+                        _pose_as_known(prev, msg, pose), prev.capture_time)
     return compensate_outputs(OutputMessage(*outputs, pose, msg.capture_time), old, age_s, bev_size_m=bev_size_m)
 
 
@@ -161,3 +158,10 @@ def _count_rejected(inboxes: dict[str, Inbox], kind: str, reason: str) -> None:
 def bytes_for(method: str, inboxes: dict[str, Inbox]) -> int:
     kind = message_kind(method)
     return 0 if kind is None else inboxes[kind].bytes_this_frame
+
+
+def _pose_as_known(prev: Message, msg: Message, known: tuple[float, ...]) -> Pose:
+    """The sender's pose at `prev`'s capture as the receiver knows it: with the same error as `known`, its pose of
+    the newer `msg` (comm.pose_noise; a receiver's error in a sender's pose changes little within a few frames,
+    and drawing new noise here would change the noise stream of every run with compensation on)."""
+    return Pose(*(float(p + k - m) for p, k, m in zip(prev.sender_pose, known, msg.sender_pose, strict=True)))

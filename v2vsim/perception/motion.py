@@ -58,15 +58,8 @@ class OutputMessage:
 
 
 def as_pose(pose: PoseLike) -> Pose:
-    """A Pose from a Pose, (x, y, z, yaw) or (x, y, yaw)."""
-    if isinstance(pose, Pose):
-        return pose
-    p = [float(v) for v in np.asarray(pose, dtype=np.float64).ravel()]
-    if len(p) == 4:
-        return Pose(*p)
-    if len(p) == 3:
-        return Pose(p[0], p[1], 0.0, p[2])
-    raise ValueError(f"a pose is (x, y, z, yaw) or (x, y, yaw), got {len(p)} values")
+    """A Pose from a Pose or (x, y, z, yaw) (a message's sender pose)."""
+    return pose if isinstance(pose, Pose) else Pose(*(float(v) for v in pose))
 
 
 def _boxes(boxes: np.ndarray) -> np.ndarray:
@@ -161,14 +154,14 @@ def move_vehicle_map(
     dt: float,
     bev_size_m: float = 100.0,
     dilate_m: float = 0.5,
-    background: float | str = 0.0,
+    background: float = 0.0,
 ) -> np.ndarray:
     """The vehicle probability [S, S] (sender's grid) moved with its objects over dt seconds.
 
     For each box with nonzero motion the cells of its footprint dilated by dilate_m (less the cells inside
-    another box's undilated footprint) are set to `background` (a value, or "median" for the map's median)
-    and their values pasted, shifted bilinearly by v * dt, with max over what is there. Boxes are in the
-    body frame of `pose` (the grid's frame), velocities [K, 2] in the world frame. Returns a new array.
+    another box's undilated footprint) are set to `background` and their values pasted, shifted bilinearly by
+    v * dt, with max over what is there. Boxes are in the body frame of `pose` (the grid's frame), velocities
+    [K, 2] in the world frame. Returns a new array.
     """
     p = np.asarray(p_vehicle)
     out = p.copy()
@@ -182,7 +175,7 @@ def move_vehicle_map(
     moving = np.flatnonzero(np.any(shift != 0.0, axis=1) & np.all(np.isfinite(shift), axis=1))
     if len(moving) == 0:
         return out
-    bg = float(np.median(p)) if background == "median" else float(background)
+    bg = float(background)
 
     # One square window of w x w cells per box, big enough for any dilated footprint (plus a spare cell).
     half = (0.5 * np.hypot(b[:, 2], b[:, 3]) + max(dilate_m, 0.0)) / res
@@ -257,7 +250,7 @@ def compensate_outputs(
     age_s: float,
     bev_size_m: float = 100.0,
     dilate_m: float = 0.5,
-    background: float | str = 0.0,
+    background: float = 0.0,
     **velocity_kwargs: float,
 ) -> tuple[np.ndarray, np.ndarray]:
     """A sender's latest outputs (maps [3, S, S], boxes [K, 6]) moved forward by age_s seconds.

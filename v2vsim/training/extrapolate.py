@@ -23,7 +23,7 @@ def late_messages(batch: dict) -> list[tuple[int, int, int, float]]:
     return out
 
 
-def extrapolate_features(module: FeatureExtrapolation, feats: Tensor, batch: dict, cache: FeatureCache,
+def extrapolate_batch(module: FeatureExtrapolation, feats: Tensor, batch: dict, cache: FeatureCache,
                          bev_size_m: float) -> Tensor:
     """feats [B, L, C, F, F] (each agent's message, in its own frame) with every late message extrapolated;
     the others (the ego, neighbours without an earlier message) are returned unchanged."""

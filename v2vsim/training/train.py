@@ -47,7 +47,7 @@ from v2vsim.training.cache import (
     read_cache_encoder,
     write_cache_encoder,
 )
-from v2vsim.training.extrapolate import extrapolate_features
+from v2vsim.training.extrapolate import extrapolate_batch
 from v2vsim.training.losses import distill_loss, perception_loss
 from v2vsim.training.stages import (
     EXTRAPOLATE,
@@ -89,7 +89,7 @@ def forward(model: nn.Module, spec: StageSpec, batch: dict, cache: FeatureCache 
         enc = model.encoder
         feats = _features(cache, batch, enc.out_channels, enc.out_cells).to(dev)
         if spec.name == EXTRAPOLATE:
-            feats = extrapolate_features(model.extrapolation, feats, batch, cache, model.bev_size_m)
+            feats = extrapolate_batch(model.extrapolation, feats, batch, cache, model.bev_size_m)
         fused = model.fuse(feats, rel, valid)
         return {"fused": fused, **model.heads(fused)}
     return model(*tensor_inputs(batch, dev))

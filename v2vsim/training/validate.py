@@ -13,7 +13,7 @@ from v2vsim.evaluation.metrics import ApAccumulator, MethodScore
 from v2vsim.perception.encode import encode_points, late_outputs
 from v2vsim.perception.fuse import FusionInputs
 from v2vsim.training.cache import FeatureCache
-from v2vsim.training.extrapolate import extrapolate_features
+from v2vsim.training.extrapolate import extrapolate_batch
 from v2vsim.training.stages import EXTRAPOLATE, StageSpec
 
 
@@ -89,7 +89,7 @@ def evaluate_extrapolation(model: nn.Module, method: str, ds: CooperativeDataset
         cells, boxes = gt["road"].shape[0], s["boxes"].numpy()
         fuse_and_score({method: model}, inp, cells, gt, boxes, {method: scores[plain]})
         feats = torch.from_numpy(np.stack([inp.features[c] for c in s["agents"]]))[None]  # [1, L, C, F, F]
-        moved = extrapolate_features(model.extrapolation, feats, collate([s]), cache, model.bev_size_m)[0]
+        moved = extrapolate_batch(model.extrapolation, feats, collate([s]), cache, model.bev_size_m)[0]
         compensated = FusionInputs(senders=inp.senders, rel_poses=inp.rel_poses,
                                    features={c: moved[j].numpy() for j, c in enumerate(s["agents"])})
         fuse_and_score({method: model}, compensated, cells, gt, boxes, {method: scores[extra]})
