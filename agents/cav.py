@@ -33,7 +33,13 @@ from agents.timing import StageTimer, write_timing
 from v2vsim.comm.codec import Message, encode
 from v2vsim.comm.share import feature_message
 from v2vsim.evaluation.gt import visible_actor_ids
-from v2vsim.perception.build import build_agent_encoder, build_compressor, build_method_models, compress
+from v2vsim.perception.build import (
+    build_agent_encoder,
+    build_compressor,
+    build_method_models,
+    compress,
+    wire_ratio,
+)
 from v2vsim.perception.encode import body_frame_points, late_outputs, pooled_confidence
 from v2vsim.perception.encode import encode as encode_features
 from v2vsim.recording.scan import encode_scan, world_points
@@ -52,7 +58,7 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
     methods = sc.perception.methods
     key = read_key(sc.comm.auth.key_file)
     encoder = build_agent_encoder(sc)
-    compressor = build_compressor(sc, encoder.out_channels)
+    compressor, ratio = build_compressor(sc, encoder.out_channels), wire_ratio(sc)
     late = "late" in methods
     # comm.share topk: the CAV ranks its cells by its own single-agent confidence; an ego keeps its whole map
     share = sc.comm.share.fraction if sc.comm.share.policy == "topk" and me not in args.egos else 1.0
@@ -136,7 +142,7 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
                         confidence = pooled_confidence(maps[0], feats.shape[-1])
             with timer.stage("comm"):
                 bus.put("features", encode(feature_message(compress(compressor, feats), confidence, share, stamp,
-                                                           sc.comm.channel_compression), key))
+                                                           ratio), key))
                 if "early" in methods and lidar:
                     bus.put("points", encode(Message(kind="points", payload=body_frame_points(sf, sc), **stamp), key))
             if late:

@@ -54,6 +54,7 @@ from v2vsim.perception.build import (
     decompress,
     method_checkpoints,
     runnable_methods,
+    wire_ratio,
 )
 from v2vsim.perception.extrapolate import extrapolate_features
 from v2vsim.recording.recorder import Recorder
@@ -92,7 +93,7 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
     assets = build_map_assets(static)
     c, f = encoder.out_channels, encoder.out_cells
     compressor = build_compressor(sc, c)
-    decoder = EgoDecoder(ego_wire_spec(sc, c, f), args.run_id, frozenset(args.cavs), key)
+    decoder = EgoDecoder(ego_wire_spec(sc, c, f, wire_ratio(sc)), args.run_id, frozenset(args.cavs), key)
 
     side = ["vis", "scan"] if sc.output.rerun else ["vis"]
     box = Mailbox({kind: decoder.max_bytes(kind) for kind in kinds} | {"vis": MAX_VIS_BYTES,
@@ -115,7 +116,8 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
     summary = RunSummary(scenario=sc, ego=me, methods=list(models),
                          untrained=all(v is None for v in checkpoints.values()), checkpoints=checkpoints,
                          skipped=[m for m in methods if m not in models],
-                         compensation=compensation_schemes(sc, list(models), extrapolations))
+                         compensation=compensation_schemes(sc, list(models), extrapolations),
+                         grid_cells=f, channels=c, wire_ratio=wire_ratio(sc))
     timer = StageTimer()
     after = AfterFusion(scores, recorder, timer)
     bus.ready()

@@ -52,8 +52,7 @@ class CooperativePerception(nn.Module):
         self.modality = modality
         self.bev_size_m = bev_size_m
         if heads.detection is not None:
-            cells = 4 * encoder.out_cells  # decoder's second stage
-            self.register_buffer("anchors", make_anchors(cells, bev_size_m), persistent=False)
+            self.register_buffer("anchors", make_anchors(heads.det_cells, bev_size_m), persistent=False)
 
     # -- the three steps ---------------------------------------------------------------------------
 

@@ -1,7 +1,10 @@
 """Decoder and output heads (CoBEVT supp. Table A2 decoder rows; Sec. 3.3 detection head).
 
 Decoder: 3 x [bilinear x2, Conv3x3, BN, ReLU]: C x 32 x 32 -> c1 x 64 x 64 -> c2 x 128 x 128 -> c3 x 256 x 256
-(paper c = 128/64/32). Dynamic head Conv1x1 -> 2 (background, vehicle), static head Conv1x1 -> 3
+(paper c = 128/64/32). A finer fusion grid (the LiDAR preset's 64 x 64, or 128 x 128) skips the first
+upsamplings (scale 1: the conv runs at the input resolution), so every grid ends at the same 256 x 256
+segmentation and 128 x 128 detection maps, and the decoder keeps its three conv stages and sizes.
+Dynamic head Conv1x1 -> 2 (background, vehicle), static head Conv1x1 -> 3
 (background, road, lane), softmax. One shared decoder feeds both heads (the paper trains two
 separate models that differ only in the last layer; the split is a training choice).
 Detection (LiDAR): two 3x3 convs (cls, reg) on the decoder's 128 x 128 stage, 2 anchors per cell.
@@ -23,16 +26,29 @@ MAX_DETECTIONS = 100  # boxes decode_detections keeps per item (late fusion ship
 BOX_CODE_SIZE = 6  # (dx/d, dy/d, log l/la, log w/wa, sin 2dyaw, cos 2dyaw)
 
 
-class BevDecoder(nn.Module):
-    """Table A2 decoder: 3 x [bilinear upsample x2, Conv3x3, BN, ReLU]; returns every stage."""
+def decoder_scales(in_cells: int, out_cells: int = 256, stages: int = 3) -> tuple[int, ...]:
+    """Upsampling factor of each decoder stage (1 or 2, the x2 ones last) from in_cells to out_cells:
+    32 -> 256: (2, 2, 2); 64 -> 256: (1, 2, 2); 128 -> 256: (1, 1, 2)."""
+    ups = round(math.log2(out_cells / in_cells)) if in_cells > 0 else -1
+    if ups < 0 or ups > stages or in_cells * 2**ups != out_cells:
+        allowed = ", ".join(str(out_cells >> k) for k in range(stages + 1))
+        raise ValueError(f"a {in_cells} x {in_cells} feature map cannot be decoded to {out_cells} x {out_cells} "
+                         f"with {stages} x2 upsamplings; allowed: {allowed}")
+    return (1,) * (stages - ups) + (2,) * ups
 
-    def __init__(self, in_channels: int, channels: tuple[int, int, int] = (128, 64, 32)) -> None:
+
+class BevDecoder(nn.Module):
+    """Table A2 decoder: 3 x [bilinear upsample x2, Conv3x3, BN, ReLU]; returns every stage. `scales`
+    (decoder_scales) replaces the first upsamplings by the identity for a finer input grid."""
+
+    def __init__(self, in_channels: int, channels: tuple[int, int, int] = (128, 64, 32),
+                 scales: tuple[int, ...] = (2, 2, 2)) -> None:
         super().__init__()
         stages, cin = [], in_channels
-        for c in channels:
+        for c, scale in zip(channels, scales, strict=True):
             stages.append(
                 nn.Sequential(
-                    nn.Upsample(scale_factor=2, mode="bilinear", align_corners=False),
+                    nn.Upsample(scale_factor=2, mode="bilinear", align_corners=False) if scale == 2 else nn.Identity(),
                     nn.Conv2d(cin, c, 3, padding=1, bias=False),
                     nn.BatchNorm2d(c),
                     nn.ReLU(inplace=True),
@@ -41,9 +57,10 @@ class BevDecoder(nn.Module):
             cin = c
         self.stages = nn.ModuleList(stages)
         self.channels = tuple(channels)
+        self.scales = tuple(scales)
 
     def forward(self, x: Tensor) -> list[Tensor]:
-        """[B, C, F, F] -> [[B, c1, 2F, 2F], [B, c2, 4F, 4F], [B, c3, 8F, 8F]]."""
+        """[B, C, F, F] -> [[B, c1, s1 F, ..], [B, c2, s1 s2 F, ..], [B, c3, 256, 256]] (F = 32: 64, 128, 256)."""
         outs = []
         for stage in self.stages:
             x = stage(x)
@@ -222,7 +239,8 @@ def segmentation_probabilities(dynamic_logits: Tensor, static_logits: Tensor | N
 
 
 class BevHeads(nn.Module):
-    """Decoder + dynamic/static segmentation heads (+ LiDAR detection head on the 128 x 128 stage)."""
+    """Decoder + dynamic/static segmentation heads (+ LiDAR detection head on the 128 x 128 stage) for an
+    in_cells x in_cells fused map; `seg_cells`: the segmentation grid (the detection grid is half of it)."""
 
     def __init__(
         self,
@@ -230,9 +248,12 @@ class BevHeads(nn.Module):
         decoder_channels: tuple[int, int, int] = (128, 64, 32),
         detection: bool = False,
         num_anchors: int = 2,
+        in_cells: int = 32,
+        seg_cells: int = 256,
     ) -> None:
         super().__init__()
-        self.decoder = BevDecoder(in_channels, decoder_channels)
+        self.in_cells, self.seg_cells, self.det_cells = in_cells, seg_cells, seg_cells // 2
+        self.decoder = BevDecoder(in_channels, decoder_channels, decoder_scales(in_cells, seg_cells))
         self.dynamic = nn.Conv2d(decoder_channels[2], 2, 1)  # background, vehicle
         # Focal-loss prior (Lin et al. 2017, Sec. 4.1): start at p(vehicle) = 0.01 so that the decoder
         # learns to light up vehicles. From p = 0.5 it found the shortcut of all-dead (ReLU) features on
@@ -243,8 +264,8 @@ class BevHeads(nn.Module):
         self.detection = DetectionHead(decoder_channels[1], num_anchors) if detection else None
 
     def forward(self, fused: Tensor) -> dict[str, Tensor]:
-        """[B, C, F, F] -> {"dynamic": [B, 2, 8F, 8F], "static": [B, 3, 8F, 8F] (logits),
-        "det_cls": [B, A, 4F, 4F], "det_reg": [B, A*6, 4F, 4F] (LiDAR only)}."""
+        """[B, C, F, F] -> {"dynamic": [B, 2, S, S], "static": [B, 3, S, S] (logits, S = seg_cells),
+        "det_cls": [B, A, S/2, S/2], "det_reg": [B, A*6, S/2, S/2] (LiDAR only)}."""
         s1, s2, s3 = self.decoder(fused)
         out = {"dynamic": self.dynamic(s3), "static": self.static(s3)}
         if self.detection is not None:
@@ -266,12 +287,14 @@ class BevHeads(nn.Module):
         return self.to(memory_format=torch.channels_last)
 
 
-def build_bev_heads(modality: str, preset: str) -> BevHeads:
-    """Heads of `preset`; the detection head only for modality "lidar"."""
+def build_bev_heads(modality: str, preset: str, in_cells: int | None = None) -> BevHeads:
+    """Heads of `preset` for an in_cells x in_cells fused map (default: the preset's LiDAR grid); the
+    detection head only for modality "lidar"."""
     if modality not in ("lidar", "camera"):
         raise ValueError(f"unknown modality {modality!r}; allowed: camera, lidar")
     p = get_preset(preset)
-    return BevHeads(p.channels, p.decoder_channels, detection=modality == "lidar", num_anchors=len(p.anchor_yaws))
+    return BevHeads(p.channels, p.decoder_channels, detection=modality == "lidar", num_anchors=len(p.anchor_yaws),
+                    in_cells=in_cells or p.cells, seg_cells=p.seg_cells)
 
 
 def resize_logits(logits: Tensor, cells: int) -> Tensor:

@@ -294,7 +294,8 @@ def synthetic_sweep(points: int = 32768, channels: int = 32, height_m: float = 1
     return torch.stack([x, y, z, inten], dim=-1).reshape(-1, 4)
 
 
-def build_pointpillars(preset: str, bev_size_m: float = 100.0) -> PointPillars:
-    """PointPillars with the sizes of `preset` ("paper" | "tiny"), output C x F x F over bev_size_m."""
+def build_pointpillars(preset: str, bev_size_m: float = 100.0, cells: int | None = None) -> PointPillars:
+    """PointPillars with the sizes of `preset` ("paper" | "tiny"), output C x F x F over bev_size_m
+    (F = `cells`, default the preset's LiDAR grid)."""
     p = get_preset(preset)
-    return PointPillars(p.pointpillars, p.channels, p.cells, bev_size_m)
+    return PointPillars(p.pointpillars, p.channels, cells or p.cells, bev_size_m)

@@ -30,13 +30,19 @@ class PointPillarsConfig:
 
 @dataclass(frozen=True)
 class ModelPreset:
-    """All sizes of one preset; C x F x F is the shared fusion feature map."""
+    """All sizes of one preset; C x F x F is the shared fusion feature map.
+
+    `cells` is the LiDAR (PointPillars) fusion grid F over the 100 m BEV square; a zoo records the grid it
+    was trained at (models.zoo), so the preset's value is the default of a newly trained zoo. The camera
+    encoders' grid is their own (SinBEVT's output, Table A2: 32 x 32), `camera_cells` here.
+    """
 
     name: str
     channels: int  # C
-    cells: int  # F
+    cells: int  # F of the LiDAR track
     pointpillars: PointPillarsConfig
     decoder_channels: tuple[int, int, int]  # Table A2 decoder, after each x2 upsampling
+    camera_cells: int = 32
     seg_cells: int = 256  # final segmentation grid (Table A2: 256 x 256)
     fusion_kwargs: dict[str, dict[str, Any]] = field(default_factory=dict)  # per fusion method
     anchor_size: tuple[float, float] = (4.5, 1.9)  # (l, w) of the detection anchors

@@ -59,10 +59,18 @@ def intermediate_methods() -> list[str]:
     return [m for m in METHODS if is_intermediate(m)]
 
 
-def build_encoder(name: str, preset: str, bev_size_m: float = 100.0) -> nn.Module:
-    """Encoder `name` ("pointpillars" | "sinbevt" | "lara") of `preset` -> [B, C, F, F] over bev_size_m."""
+def build_encoder(name: str, preset: str, bev_size_m: float = 100.0, cells: int | None = None) -> nn.Module:
+    """Encoder `name` ("pointpillars" | "sinbevt" | "lara") of `preset` -> [B, C, F, F] over bev_size_m.
+
+    `cells`: the LiDAR fusion grid F (default the preset's; a zoo records its own, models.zoo.zoo_cells).
+    The camera encoders' grid is fixed by their architecture (SinBEVT's output, Table A2): for them
+    `cells` must be None or their own."""
     _check("encoder", name, ENCODERS)
-    get_preset(preset)
+    p = get_preset(preset)
+    if MODALITY[name] == "lidar":
+        return ENCODERS[name](preset, bev_size_m=bev_size_m, cells=cells)
+    if cells not in (None, p.camera_cells):
+        raise ValueError(f"{name}: a camera encoder's grid is {p.camera_cells} x {p.camera_cells}, not {cells}")
     return ENCODERS[name](preset, bev_size_m=bev_size_m)
 
 
@@ -73,20 +81,24 @@ def build_fusion(name: str, preset: str) -> nn.Module:
     return FUSION[name](p.channels, **p.fusion_args(name))
 
 
-def build_heads(modality: str, preset: str) -> BevHeads:
-    """Decoder + segmentation heads (+ detection head for "lidar") of `preset`."""
-    return build_bev_heads(modality, preset)
+def build_heads(modality: str, preset: str, in_cells: int | None = None) -> BevHeads:
+    """Decoder + segmentation heads (+ detection head for "lidar") of `preset` for an in_cells grid (default:
+    the preset's grid of that modality)."""
+    p = get_preset(preset)
+    return build_bev_heads(modality, preset, in_cells or (p.cells if modality == "lidar" else p.camera_cells))
 
 
-def build_cooperative(encoder: str, method: str, preset: str, bev_size_m: float = 100.0) -> CooperativePerception:
-    """The whole model for one encoder and one of METHODS (brackets use fusion "none")."""
+def build_cooperative(encoder: str, method: str, preset: str, bev_size_m: float = 100.0,
+                      cells: int | None = None) -> CooperativePerception:
+    """The whole model for one encoder and one of METHODS (brackets use fusion "none"); `cells`: the LiDAR
+    fusion grid (build_encoder)."""
     _check("encoder", encoder, ENCODERS)
     _check("method", method, METHODS)
     modality = MODALITY[encoder]
     fusion = build_fusion(method if is_intermediate(method) else "none", preset)
-    return CooperativePerception(
-        build_encoder(encoder, preset, bev_size_m), fusion, build_heads(modality, preset), method, modality, bev_size_m
-    )
+    enc = build_encoder(encoder, preset, bev_size_m, cells)
+    return CooperativePerception(enc, fusion, build_heads(modality, preset, enc.out_cells), method, modality,
+                                 bev_size_m)
 
 
 def _params(m: nn.Module) -> int:

@@ -9,6 +9,15 @@
                                    "data": {...}, "wall_s": ..., "validation": {...}}, ...},
            "extrapolation": {"cobevt": "cobevt_extrapolate.pt"}}}}   # optional
 
+"cells" (LiDAR zoos): the fusion grid F the zoo was trained at (models.presets: a preset's `cells` is only
+the default of a new zoo); models are built at the zoo's grid (zoo_cells). An entry without it predates
+the key and was trained at 32 x 32.
+
+"compressors" (optional; the `compress` training stage): {"8": "compressor_r8.pt", ...}, the trained
+1 x 1 channel compressor of each ratio r (models.compression: sender C -> C/r, receiver C/r -> C), shared
+by every intermediate method (it is part of the wire message, like the float16 payload); "wire_ratio":
+the ratio a scenario's comm.channel_compression: null means for this zoo (the fusion stages train with it).
+
 "extrapolation" (optional; the `extrapolate` training stage): per method, a receiver-side latency
 compensation module (models.extrapolation) trained on top of that method's checkpoint. It is an add-on,
 not a method: "methods" still names each method's own file, and the add-on's file is listed in "files"
@@ -79,6 +88,27 @@ def method_file(entry: dict, method: str, root: Path, encoder: str, preset: str)
     return None if name is None else root / zoo_name(encoder, preset) / name
 
 
+LEGACY_CELLS = 32  # the grid of a LiDAR zoo entry written before "cells" was recorded
+
+
+def zoo_cells(entry: dict | None, default: int) -> int:
+    """The fusion grid a zoo entry was trained at; `default` (the preset's) when there is no entry."""
+    if entry is None:
+        return default
+    return int(entry.get("cells", LEGACY_CELLS))
+
+
+def compressor_file(entry: dict, ratio: int, root: Path, encoder: str, preset: str) -> Path | None:
+    """The trained channel compressor of `ratio`, None if the zoo has none."""
+    name = (entry.get("compressors") or {}).get(str(ratio))
+    return None if name is None else root / zoo_name(encoder, preset) / name
+
+
+def wire_ratio(entry: dict | None) -> int:
+    """The channel compression ratio of this zoo's default wire message (1: uncompressed)."""
+    return 1 if entry is None else int(entry.get("wire_ratio", 1))
+
+
 def extrapolation_file(entry: dict, method: str, root: Path, encoder: str, preset: str) -> Path | None:
     """The latency-compensation add-on of `method` (models.extrapolation), None if the zoo has none."""
     name = (entry.get("extrapolation") or {}).get(method)
@@ -126,13 +156,34 @@ def save_checkpoint(path: Path, state_dict: dict, *, encoder: str, preset: str, 
     tmp.replace(path)
 
 
+def set_wire_ratio(encoder: str, preset: str, ratio: int, root: Path = WEIGHTS_DIR) -> None:
+    """Make `ratio` (its compressor must be registered) the zoo's default wire ratio."""
+    doc = read_manifest(root)
+    entry = doc["zoos"][zoo_name(encoder, preset)]
+    if str(ratio) not in (entry.get("compressors") or {}):
+        raise ZooError(f"{root / MANIFEST}: no ratio-{ratio} compressor registered; train it first")
+    entry["wire_ratio"] = ratio
+    write_manifest(doc, root)
+
+
 def register(path: Path, *, encoder: str, preset: str, methods: list[str], info: dict,
-             root: Path = WEIGHTS_DIR, provides_encoder: bool = False, extrapolates: tuple[str, ...] = ()) -> None:
+             root: Path = WEIGHTS_DIR, provides_encoder: bool = False, extrapolates: tuple[str, ...] = (),
+             cells: int | None = None, compresses: int | None = None) -> None:
     """Add (or replace) a checkpoint file in the manifest, with its sha256 and size; `provides_encoder`:
     this file holds the encoder every CAV runs (the single-agent stage); `extrapolates`: methods whose
-    latency-compensation add-on this file is (it then serves no method itself: pass methods=[])."""
+    latency-compensation add-on this file is (it then serves no method itself: pass methods=[]);
+    `cells`: the LiDAR grid it was trained at (ZooError if the entry holds another grid's files);
+    `compresses`: the ratio whose channel compressor this file is."""
     doc = read_manifest(root)
     entry = doc["zoos"].setdefault(zoo_name(encoder, preset), {"encoder": None, "methods": {}, "files": {}})
+    if cells is not None:
+        have = entry.get("cells", LEGACY_CELLS if entry["files"] else cells)
+        if have != cells:
+            raise ZooError(f"{root / MANIFEST}: {zoo_name(encoder, preset)} holds a {have} x {have} zoo; a {cells} x "
+                           f"{cells} checkpoint cannot join it (train into another --out)")
+        entry["cells"] = cells
+    if compresses is not None:
+        entry.setdefault("compressors", {})[str(compresses)] = path.name
     if provides_encoder:
         entry["encoder"] = path.name
     entry["files"][path.name] = {"sha256": sha256(path), "bytes": path.stat().st_size, **info}

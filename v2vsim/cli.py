@@ -99,8 +99,19 @@ def _cmd_train(args: argparse.Namespace) -> int:
     overrides = {k: getattr(args, k) for k in ("epochs", "samples_per_epoch", "batch", "lr", "val_samples",
                                                "yaw_jitter_deg")
                  if getattr(args, k) is not None}
+    extra = {}
+    if args.ratios is not None:
+        try:
+            extra["ratios"] = tuple(int(r) for r in args.ratios.split(","))
+        except ValueError:
+            print(f"v2vsim train: --ratios {args.ratios!r}: expected integers separated by commas, e.g. 8,16",
+                  file=sys.stderr)
+            return 2
+        if any(r < 2 for r in extra["ratios"]):
+            print(f"v2vsim train: --ratios {args.ratios!r}: every ratio must be >= 2", file=sys.stderr)
+            return 2
     targs = TrainArgs(data=Path(args.data), stage=args.stage, out=Path(args.out), work=Path(args.work),
-                      encoder=args.encoder, preset=args.preset,
+                      encoder=args.encoder, preset=args.preset, cells=args.cells, bf16=args.bf16, **extra,
                       device=args.device, threads=args.threads, seed=args.seed, resume=args.resume,
                       val_every=args.val_every, workers=args.workers,
                       overrides=tuple(overrides.items()), command=command_line(sys.argv[2:]))
@@ -234,8 +245,9 @@ def build_parser() -> argparse.ArgumentParser:
                                      "(docs/training.md)")
     p.add_argument("--data", required=True, help="dataset directory written by `v2vsim dataset`")
     p.add_argument("--stage", default="all",
-                   help="all | single | cache | none | early | attfuse | fcooper | v2vnet | cobevt | disconet | "
-                        "extrapolate (latency compensation for the --out zoo's cobevt; not part of all)")
+                   help="all | single | cache | compress (the wire's channel compressors, --ratios) | none | early | "
+                        "attfuse | fcooper | v2vnet | cobevt | disconet | extrapolate (latency compensation for the "
+                        "--out zoo's cobevt; not part of all)")
     p.add_argument("--out", default="models/weights", help="zoo directory: manifest.json + <encoder>_<preset>/")
     p.add_argument("--work", default="runs/train", help="checkpoints and the feature cache (resumable)")
     p.add_argument("--resume", action="store_true", help="continue the stage from its last checkpoint")
@@ -256,6 +268,12 @@ def build_parser() -> argparse.ArgumentParser:
                    "(extrinsics and targets alike; default 0: off)")
     p.add_argument("--workers", type=int, default=0,
                    help="data-loading processes (default 0: in the training process; a GPU wants several)")
+    p.add_argument("--cells", type=int, default=None, choices=[32, 64, 128],
+                   help="LiDAR fusion grid F x F over the BEV square (default: the --out zoo's, else the preset's)")
+    p.add_argument("--ratios", default=None, metavar="R,R,...",
+                   help="`compress` stage: the channel compression ratios to train (default 8,16,32,64)")
+    p.add_argument("--bf16", action="store_true",
+                   help="bfloat16 autocast in the forward pass (a CPU with AMX, or CUDA); docs/training.md")
     p.set_defaults(func=_cmd_train)
 
     p = sub.add_parser("sweep", help="run a scenario over a grid of overrides x seeds: sweep.csv/json/md, plots "

@@ -2,7 +2,10 @@
 method for N = 1, 2, 4, 8 agents, the decoder + heads, and the tiny per-frame budget
 (PointPillars on one 32k-point sweep + warp + FuseBEVT over 4 agents, target < 50 ms).
 
-    v2vsim bench models [--presets tiny,paper] [--repeats 5] [--json out.json]
+    v2vsim bench models [--presets tiny,paper] [--cells 32,64,128] [--repeats 5] [--json out.json]
+
+--cells: the LiDAR fusion grids to time (PointPillars, every fusion method, the LiDAR heads and the frame at
+each; default: each preset's own); the camera encoders keep their own 32 x 32 grid.
 
 Median of `repeats` timed runs after 2 warm-up runs, torch.no_grad, eval mode. Not a test: figures
 depend on the machine and its load.
@@ -47,32 +50,38 @@ def _poses(n: int) -> torch.Tensor:
     return p
 
 
-def bench_preset(preset: str, repeats: int) -> list[dict]:
-    """Rows {preset, kind, name, agents, params, ms} for one preset."""
+def bench_preset(preset: str, repeats: int, cells: int | None = None) -> list[dict]:
+    """Rows {preset, kind, name, agents, params, ms} for one preset at LiDAR grid `cells` (default its own);
+    the preset column reads "<preset> FxF"."""
     p = get_preset(preset)
+    f = cells or p.cells
+    label = f"{preset} {f}x{f}"
     rows: list[dict] = []
     encoders: dict[str, torch.nn.Module] = {}
     for name in ENCODERS:
-        enc = build_encoder(name, preset).eval()
+        if cells is not None and name != "pointpillars":
+            continue  # a camera encoder's grid is its own: timed once, at the preset's default
+        enc = build_encoder(name, preset, cells=f if name == "pointpillars" else None).eval()
         encoders[name] = enc
         inputs = enc.example_inputs()
         call = (lambda e=enc, x=inputs: e(x)) if name == "pointpillars" else (lambda e=enc, x=inputs: e(*x))
-        rows.append({"preset": preset, "kind": "encoder", "name": name, "agents": 1,
+        rows.append({"preset": label, "kind": "encoder", "name": name, "agents": 1,
                      "params": _params(enc), "ms": _time_ms(call, repeats)})
     for name in FUSION:
         fus = build_fusion(name, preset).eval()
         for n in AGENTS:
-            feats = torch.randn(1, n, p.channels, p.cells, p.cells).relu()
+            feats = torch.randn(1, n, p.channels, f, f).relu()
             valid = torch.ones(1, n, dtype=torch.bool)
-            rows.append({"preset": preset, "kind": "fusion", "name": name, "agents": n,
+            rows.append({"preset": label, "kind": "fusion", "name": name, "agents": n,
                          "params": _params(fus), "ms": _time_ms(lambda f=fus, x=feats, v=valid: f(x, v), repeats)})
-    feats4 = torch.randn(1, 4, p.channels, p.cells, p.cells).relu()
-    rows.append({"preset": preset, "kind": "warp", "name": "warp_to_ego", "agents": 4, "params": 0,
+    feats4 = torch.randn(1, 4, p.channels, f, f).relu()
+    rows.append({"preset": label, "kind": "warp", "name": "warp_to_ego", "agents": 4, "params": 0,
                  "ms": _time_ms(lambda: warp_to_ego(feats4, _poses(4)), repeats)})
-    for modality in ("camera", "lidar"):
-        heads = build_heads(modality, preset).eval()
-        rows.append({"preset": preset, "kind": "heads", "name": f"heads-{modality}", "agents": 1,
-                     "params": _params(heads), "ms": _time_ms(lambda h=heads: h(feats4[:, 0]), repeats)})
+    for modality in ("camera", "lidar") if cells is None else ("lidar",):
+        heads = build_heads(modality, preset, f if modality == "lidar" else None).eval()
+        x = feats4[:, 0] if modality == "lidar" else torch.randn(1, p.channels, p.camera_cells, p.camera_cells)
+        rows.append({"preset": label, "kind": "heads", "name": f"heads-{modality}", "agents": 1,
+                     "params": _params(heads), "ms": _time_ms(lambda h=heads, x=x: h(x), repeats)})
     # Per-frame ego budget: its own PointPillars sweep (the other CAVs encode in their own processes)
     # + warp of the 4 maps + FuseBEVT.
     pp, fuse = encoders["pointpillars"], build_fusion("cobevt", preset).eval()
@@ -85,10 +94,10 @@ def bench_preset(preset: str, repeats: int) -> list[dict]:
         warped, _ = warp_to_ego(stack, _poses(4))
         return fuse(warped, valid4)
 
-    rows.append({"preset": preset, "kind": "frame", "name": "pointpillars+warp+cobevt", "agents": 4,
+    rows.append({"preset": label, "kind": "frame", "name": "pointpillars+warp+cobevt", "agents": 4,
                  "params": _params(pp) + _params(fuse), "ms": _time_ms(frame, repeats)})
-    heads = build_heads("lidar", preset).eval()
-    rows.append({"preset": preset, "kind": "frame", "name": "pointpillars+warp+cobevt+heads", "agents": 4,
+    heads = build_heads("lidar", preset, f).eval()
+    rows.append({"preset": label, "kind": "frame", "name": "pointpillars+warp+cobevt+heads", "agents": 4,
                  "params": _params(pp) + _params(fuse) + _params(heads),
                  "ms": _time_ms(lambda: heads(frame()), repeats)})
     return rows
@@ -117,6 +126,8 @@ def format_rows(rows: list[dict]) -> str:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="v2vsim bench models", description=__doc__.splitlines()[0])
     ap.add_argument("--presets", default="tiny,paper")
+    ap.add_argument("--cells", default=None, metavar="F,F,...",
+                    help="LiDAR fusion grids to time (e.g. 32,64,128; default: each preset's own)")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--json", default=None, help="also write the rows as JSON here")
@@ -124,13 +135,15 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     rows: list[dict] = []
+    grids = [None] if args.cells is None else [int(c) for c in args.cells.split(",")]
     for preset in args.presets.split(","):
-        rows += bench_preset(preset, args.repeats)
+        for cells in grids:
+            rows += bench_preset(preset, args.repeats, cells)
     print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), median of {args.repeats}")
     print(format_rows(rows))
-    frame = [r for r in rows if r["preset"] == "tiny" and r["name"] == "pointpillars+warp+cobevt"]
-    if frame:
-        print(f"\ntiny PointPillars (32k points) + warp + FuseBEVT, 4 agents: {frame[0]['ms']:.1f} ms (target < 50 ms)")
+    for r in rows:
+        if r["preset"].startswith("tiny ") and r["name"] == "pointpillars+warp+cobevt":
+            print(f"\n{r['preset']}: PointPillars (32k points) + warp + FuseBEVT, 4 agents: {r['ms']:.1f} ms")
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(rows, fh, indent=1)

@@ -4,7 +4,8 @@ Every dimension is exact or bounded by the scenario, so the codec can refuse an 
 inflating message from its header alone (v2vsim.comm.codec "KindSpec"):
 
   features  (C / r, F, F) float16: the encoder's grid, exactly; the header must name the
-            scenario's ratio r = comm.channel_compression (the ego's decoder is built for it)
+            run's ratio r (perception.build.wire_ratio: comm.channel_compression or the zoo's;
+            the ego's decoder is built for it)
   points    (<= lidar.channels * lidar.points_per_channel, 4) float32: one body-frame sweep
             (v2vsim.perception.encode.body_frame_points keeps at most one return per ray)
   outputs   (3, 8F, 8F) float16 maps (the decoder upsamples the grid 8x), and exactly one
@@ -45,9 +46,12 @@ def message_kind(method: str) -> str | None:
     return {"early": "points", "late": "outputs", "none": None}.get(method, "features")
 
 
-def ego_wire_spec(sc: Scenario, encoder_out_channels: int, encoder_out_cells: int) -> dict[str, KindSpec]:
-    """The KindSpec of each message kind the ego of `sc` may receive (see the module docstring)."""
-    c, f, r = encoder_out_channels, encoder_out_cells, sc.comm.channel_compression
+def ego_wire_spec(sc: Scenario, encoder_out_channels: int, encoder_out_cells: int, ratio: int | None = None
+                  ) -> dict[str, KindSpec]:
+    """The KindSpec of each message kind the ego of `sc` may receive (see the module docstring); `ratio`: the
+    run's channel compression (v2vsim.perception.build.wire_ratio; default comm.channel_compression or 1)."""
+    c, f = encoder_out_channels, encoder_out_cells
+    r = ratio if ratio is not None else (sc.comm.channel_compression or 1)
     s = DECODER_UPSAMPLING * f
     sweep = sc.sensors.lidar.channels * sc.sensors.lidar.points_per_channel
     return {

@@ -182,7 +182,10 @@ class CommConfig:
     compensation: bool = False
     pose_noise: PoseNoiseConfig = field(default_factory=PoseNoiseConfig)
     compression: Literal["none", "zlib"] = "none"
-    channel_compression: int = _f(1, "1 (off) or a reduction ratio such as 8, 16, 32, 64", _pos)
+    # CoBEVT Table 4's learned 1x1 channel compressor, ratio r: C -> C/r channels on the wire. null: the zoo's
+    # wire ratio (v2vsim.perception.build.wire_ratio); a ratio needs a trained compressor in the zoo.
+    channel_compression: int | None = _f(None, "null (the zoo's wire ratio), 1 (off) or a ratio whose compressor "
+                                               "the zoo ships, such as 8, 16, 32, 64", _pos)
     auth: AuthConfig = field(default_factory=AuthConfig)
     channel: ChannelConfig = field(default_factory=ChannelConfig)
     # per_link: every (sender, receiver) link has its own data rate; shared: one broadcast channel for every

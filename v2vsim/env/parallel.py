@@ -41,7 +41,14 @@ from v2vsim.comm.wire_spec import EgoDecoder, ego_wire_spec
 from v2vsim.config import ConfigError, Scenario, load_scenario
 from v2vsim.evaluation.gt import bev_ground_truth, visible_actor_ids
 from v2vsim.evaluation.metrics import MethodScore, vehicle_iou
-from v2vsim.perception.build import build_agent_encoder, build_compressor, build_method_models, compress, decompress
+from v2vsim.perception.build import (
+    build_agent_encoder,
+    build_compressor,
+    build_method_models,
+    compress,
+    decompress,
+    wire_ratio,
+)
 from v2vsim.perception.encode import encode as encode_features
 from v2vsim.perception.encode import vehicle_confidence
 from v2vsim.perception.fuse import FusionInputs, Prediction, predict
@@ -128,7 +135,8 @@ class CooperativePerceptionEnv(ParallelEnv):
         self.compressor = build_compressor(sc, self.encoder.out_channels)
         self.models = build_method_models(sc, self.encoder, tuple(dict.fromkeys(("none", *options.methods))))
         self.channels, self.cells = self.encoder.out_channels, self.encoder.out_cells
-        self.wire_shape = (self.channels // sc.comm.channel_compression, self.cells, self.cells)
+        self.ratio = wire_ratio(sc)  # the zoo's, where comm.channel_compression is null
+        self.wire_shape = (self.channels // self.ratio, self.cells, self.cells)
         self.max_cycles: int | None = None  # PettingZoo's episode cap (parallel_api_test sets it); None: duration_s
         self._backend: TrafficBackend | None = None
         self._assets: Any = None
@@ -180,7 +188,7 @@ class CooperativePerceptionEnv(ParallelEnv):
         self._world = world
         self.agents = [a for a in self.possible_agents if world.actor(a) is not None]
         self._inboxes = {a: Inbox(sc.comm, sc.seed, a, "features", CommStats()) for a in self.possible_agents}
-        self._decoder = EgoDecoder(ego_wire_spec(sc, self.channels, self.cells), f"env-{sc.seed}",
+        self._decoder = EgoDecoder(ego_wire_spec(sc, self.channels, self.cells, self.ratio), f"env-{sc.seed}",
                                     frozenset(self.possible_agents))
         self._links = {}
         self._latency = {}
@@ -210,7 +218,7 @@ class CooperativePerceptionEnv(ParallelEnv):
             stamp = {"run_id": self._decoder.run_id, "sender_id": a, "frame": world.frame,
                      "capture_time": world.time, "sender_pose": world.actor(a).pose.as_tuple(),
                      "compression": sc.comm.compression}
-            msg = feature_message(s.payload, s.confidence, frac, stamp, sc.comm.channel_compression)
+            msg = feature_message(s.payload, s.confidence, frac, stamp, self.ratio)
             data = encode(msg)
             sent[a] = (data, msg)
             nbytes[a] = len(data)
@@ -309,7 +317,7 @@ class CooperativePerceptionEnv(ParallelEnv):
         airtime = len(sent[j][0]) if j in sent else 0  # its broadcast's size (comm.medium shared counts it)
         inbox.offer(Message(kind="features", run_id=self._decoder.run_id, sender_id=j, frame=world.frame,
                             capture_time=world.time, sender_pose=me.as_tuple(), payload=own,
-                            channel_compression=self._episode_sc.comm.channel_compression),
+                            channel_compression=self.ratio),
                     airtime, world.time, 0.0)
         for i, (data, _) in sent.items():
             if i == j:

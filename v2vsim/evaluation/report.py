@@ -38,6 +38,9 @@ class RunSummary:
     checkpoints: dict[str, str | None] = field(default_factory=dict)  # method -> zoo file (None: random init)
     timing: dict = field(default_factory=dict)  # the ego's StageTimer.to_json(): ms per frame by stage
     compensation: dict[str, str] = field(default_factory=dict)  # method -> how its late messages are compensated
+    grid_cells: int = 0  # the fusion grid F of the feature messages (F x F cells over bev.size_m)
+    channels: int = 0  # C of the encoder's feature map
+    wire_ratio: int = 1  # channel compression of the feature messages: C / r channels on the wire
 
 
 def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: CommStats,
@@ -62,6 +65,9 @@ def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: Comm
         "lost_agents": summary.lost_agents,
         "encoder": sc.perception.encoder,
         "preset": sc.perception.preset,
+        "grid": {"cells": summary.grid_cells, "cell_m": round(sc.bev.size_m / summary.grid_cells, 3)
+                 if summary.grid_cells else None, "channels": summary.channels, "wire_ratio": summary.wire_ratio,
+                 "wire_channels": summary.channels // summary.wire_ratio if summary.channels else None},
         "weights": "untrained (seeded random init)" if summary.untrained else sc.perception.weights,
         "checkpoints": {m: summary.checkpoints.get(m) for m in summary.methods},
         "compensation": {m: summary.compensation.get(m, "none") for m in summary.methods},
@@ -102,6 +108,12 @@ def report_md(doc: dict, summary: RunSummary) -> str:
     lines.append("")
     lines.append(f"Scenario `{sc.source}`, seed {sc.seed}" + (
         ", overrides: " + " ".join(f"`--set {o}`" for o in sc.overrides) if sc.overrides else ", no overrides") + ".")
+    if summary.grid_cells:
+        cell = sc.bev.size_m / summary.grid_cells
+        wire = (f"compressed {summary.wire_ratio}x to {summary.channels // summary.wire_ratio} channels by the zoo's "
+                f"trained compressor" if summary.wire_ratio > 1 else "uncompressed")
+        lines += ["", f"Feature messages: {summary.channels} x {summary.grid_cells} x {summary.grid_cells} "
+                  f"({cell:.2f} m cells), {wire}, float16."]
     if summary.untrained:
         lines += ["", "**Weights are untrained** (no checkpoint for this encoder/preset; every process uses the same "
                   "seeded random initialisation). The scores below measure the harness, not the methods: do not "

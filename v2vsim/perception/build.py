@@ -20,7 +20,7 @@ from models import zoo
 from models.compression import ChannelCompressor
 from models.extrapolation import FeatureExtrapolation
 from models.presets import get_preset
-from models.registry import build_cooperative, build_encoder
+from models.registry import MODALITY, build_cooperative, build_encoder
 from v2vsim.config import ConfigError, Scenario
 
 
@@ -103,10 +103,28 @@ def _load(module: nn.Module, state: dict | None, prefix: str, sc: Scenario, meth
                           f"{zoo.rebuild_command(path, entry)}") from None
 
 
+def fusion_cells(sc: Scenario) -> int | None:
+    """The LiDAR fusion grid the scenario's models are built at: its zoo's (models.zoo.zoo_cells), the
+    preset's with random weights; None for a camera encoder (its grid is its own)."""
+    if MODALITY[sc.perception.encoder] != "lidar":
+        return None
+    z = zoo_for(sc)
+    return zoo.zoo_cells(None if z is None else z[1], get_preset(sc.perception.preset).cells)
+
+
+def wire_ratio(sc: Scenario) -> int:
+    """The channel compression ratio r of the feature messages: comm.channel_compression, or where it is
+    null the zoo's wire ratio (models.zoo.wire_ratio; 1 with random weights or a zoo without compressors)."""
+    if sc.comm.channel_compression is not None:
+        return sc.comm.channel_compression
+    z = zoo_for(sc)
+    return zoo.wire_ratio(None if z is None else z[1])
+
+
 def build_agent_encoder(sc: Scenario) -> nn.Module:
     """The encoder every CAV runs; identical in every process for a given scenario."""
     _seed(sc, "encoder")
-    enc = build_encoder(sc.perception.encoder, sc.perception.preset, bev_size_m=sc.bev.size_m)
+    enc = build_encoder(sc.perception.encoder, sc.perception.preset, bev_size_m=sc.bev.size_m, cells=fusion_cells(sc))
     _load(enc, _states(sc, ("encoder",))["encoder"], "encoder.", sc, "encoder")
     return enc.eval()
 
@@ -119,11 +137,11 @@ def runnable_methods(sc: Scenario) -> tuple[str, ...]:
 def check_scenario(sc: Scenario) -> None:
     """Model-dependent checks the schema cannot make; ConfigError before any process starts."""
     channels = get_preset(sc.perception.preset).channels
-    ratio = sc.comm.channel_compression
+    ratio = wire_ratio(sc)
     if channels % ratio:
         raise ConfigError(f"{sc.source}: comm.channel_compression: {ratio} does not divide the {channels} feature "
                           f"channels of preset {sc.perception.preset!r}; allowed: a divisor of {channels}")
-    _check_compressor(sc)
+    build_compressor(sc, channels)
     if not runnable_methods(sc):
         raise ConfigError(f"{sc.source}: perception.methods: nothing to run for modality "
                           f"{sc.perception.modality!r} (early fusion needs LiDAR)")
@@ -134,28 +152,40 @@ def check_scenario(sc: Scenario) -> None:
 
 
 def build_compressor(sc: Scenario, channels: int) -> ChannelCompressor | None:
-    """The learned channel compression pair of comm.channel_compression (None when it is 1)."""
-    ratio = sc.comm.channel_compression
+    """The channel compression pair of the scenario's wire ratio (None when it is 1): the zoo's trained one
+    (`compress` stage), verified like every checkpoint. A ratio the zoo has no compressor for is a ConfigError
+    naming the ratio and the command that trains it: behind trained encoders and fusion models a randomly
+    initialised compressor would make every intermediate method's result meaningless, silently. Only a run
+    whose weights are all random (perception.weights: none; its report says so) builds a seeded random one."""
+    ratio = wire_ratio(sc)
     if ratio == 1:
         return None
-    _check_compressor(sc)
-    _seed(sc, "compressor")
-    comp = ChannelCompressor(channels, ratio)  # only with random weights everywhere (perception.weights: none)
+    z = zoo_for(sc)
+    if z is None:
+        _seed(sc, "compressor")
+        return ChannelCompressor(channels, ratio).eval()
+    root, entry = z
+    enc, preset = sc.perception.encoder, sc.perception.preset
+    path = zoo.compressor_file(entry, ratio, root, enc, preset)
+    if path is None:
+        shipped = sorted(int(r) for r in entry.get("compressors") or {})
+        raise ConfigError(f"{sc.source}: comm.channel_compression: {ratio}: the {zoo.zoo_name(enc, preset)} zoo "
+                          f"({root}) has no trained compressor for ratio {ratio}; allowed: "
+                          f"{', '.join(map(str, [1, *shipped]))} (or null: the zoo's wire ratio, "
+                          f"{zoo.wire_ratio(entry)}); train one with: v2vsim train --data DATA --stage compress "
+                          f"--ratios {ratio} --out {root} --work WORK (docs/training.md)")
+    try:
+        state = zoo.load_checkpoint(path, entry)
+    except zoo.ZooError as e:
+        raise ConfigError(str(e)) from None
+    comp = ChannelCompressor(channels, ratio)
+    try:
+        comp.load_state_dict({k[len("compressor."):]: v for k, v in state.items() if k.startswith("compressor.")})
+    except RuntimeError as e:
+        reason = " ".join(str(e).split())
+        raise ConfigError(f"{path}: the ratio-{ratio} compressor does not fit this model ({reason[:300]}); rebuild "
+                          f"it with: {zoo.rebuild_command(path, entry)}") from None
     return comp.eval()
-
-
-def _check_compressor(sc: Scenario) -> None:
-    """No zoo ships a trained compressor yet: behind trained encoders and fusion models a randomly initialised
-    one would make every intermediate method's result meaningless, silently. Refuse it; a run whose weights are
-    all random (perception.weights: none) may use one, and its report says the weights are untrained."""
-    ratio = sc.comm.channel_compression
-    if ratio == 1 or zoo_for(sc) is None:
-        return
-    name = zoo.zoo_name(sc.perception.encoder, sc.perception.preset)
-    raise ConfigError(f"{sc.source}: comm.channel_compression: {ratio}: the {name} zoo ships no trained compressor "
-                      f"for ratio {ratio}, and an untrained one behind trained fusion models would run silently; "
-                      "allowed with trained weights: 1 (no compression); with perception.weights: none, any divisor "
-                      "of the feature channels")
 
 
 @torch.no_grad()
@@ -177,7 +207,8 @@ def build_method_models(sc: Scenario, encoder: nn.Module, methods: tuple[str, ..
     out = {}
     for m in methods:
         _seed(sc, f"method:{m}")
-        model = build_cooperative(sc.perception.encoder, m, sc.perception.preset, bev_size_m=sc.bev.size_m)
+        model = build_cooperative(sc.perception.encoder, m, sc.perception.preset, bev_size_m=sc.bev.size_m,
+                                  cells=fusion_cells(sc))
         state = states[m]
         if m == "early":  # early fusion's encoder runs at the ego on merged clouds: its own weights
             _load(model.encoder, state, "encoder.", sc, m)

@@ -7,6 +7,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from models.compression import ChannelCompressor
 from models.extrapolation import FeatureExtrapolation, compensate
 from v2vsim.training.cache import FeatureCache
 
@@ -24,9 +25,10 @@ def late_messages(batch: dict) -> list[tuple[int, int, int, float]]:
 
 
 def extrapolate_batch(module: FeatureExtrapolation, feats: Tensor, batch: dict, cache: FeatureCache,
-                         bev_size_m: float) -> Tensor:
+                      bev_size_m: float, wire: ChannelCompressor | None = None) -> Tensor:
     """feats [B, L, C, F, F] (each agent's message, in its own frame) with every late message extrapolated;
-    the others (the ego, neighbours without an earlier message) are returned unchanged."""
+    the others (the ego, neighbours without an earlier message) are returned unchanged. The earlier messages
+    pass through the `wire` compressor (the zoo's wire ratio) like `feats` did."""
     late = late_messages(batch)
     if not late:
         return feats
@@ -34,6 +36,9 @@ def extrapolate_batch(module: FeatureExtrapolation, feats: Tensor, batch: dict, 
     jj = torch.tensor([j for _, j, _, _ in late])
     old = torch.stack([torch.from_numpy(cache.get(batch["key"][i].run, p, batch["agents"][i][j]).astype(np.float32))
                        for i, j, p, _ in late]).to(feats.device)  # [M, C, F, F]
+    if wire is not None:
+        with torch.no_grad():
+            old = wire.over_the_wire(old)
     steps = torch.tensor([s for _, _, _, s in late], dtype=feats.dtype, device=feats.device)  # [M]
     rel = batch["prev_rel_poses"][ii, jj].to(feats.device)  # [M, 3]: older capture in the newer one's frame
     out = feats.clone()

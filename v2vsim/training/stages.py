@@ -12,12 +12,21 @@ import torch
 from torch import nn
 
 from models import zoo
+from models.compression import ChannelCompressor
 from models.extrapolation import FeatureExtrapolation
+from models.presets import get_preset
 from models.registry import MODALITY, build_cooperative
 from v2vsim.data.layout import DatasetError
 
 FUSION_STAGES = ("attfuse", "fcooper", "v2vnet", "cobevt", "disconet")
-STAGE_ORDER = ("single", "cache", "none", "early", *FUSION_STAGES)
+# `compress`: the wire's channel compressors (one per ratio), trained after the cache and before every stage
+# that reads features off the wire (none, the fusion methods), which then train on the zoo's wire ratio.
+COMPRESS = "compress"
+STAGE_ORDER = ("single", "cache", COMPRESS, "none", "early", *FUSION_STAGES)
+# The ratios `--stage compress` trains by default (CoBEVT Table 4's), and the zoo's default wire ratio among
+# them: 64 channels -> 8 at 64 x 64 cells = 64 KiB float16 per message, 5.2 Mbps at 10 Hz on a 27 Mbps link.
+COMPRESS_RATIOS = (8, 16, 32, 64)
+WIRE_RATIO = 8
 # Receiver-side latency compensation (models.extrapolation) on top of a method already in the zoo (--out):
 # an add-on, run on its own (`--stage extrapolate`), not part of `all`.
 EXTRAPOLATE = "extrapolate"
@@ -46,6 +55,8 @@ class StageSpec:
     lane_weight: float = 3.0
     # Camera `single` stage: turn each sample's agent frame by U(-d, d) degrees (v2vsim.training.augment).
     yaw_jitter_deg: float = 0.0
+    ratio: int = 1  # `compress` stage: the channel compression ratio it trains
+    recon_weight: float = 0.0  # `compress` stage: weight of the feature reconstruction loss
 
 
 SPECS: dict[str, StageSpec] = {
@@ -66,6 +77,10 @@ SPECS["disconet"] = dataclasses.replace(SPECS["disconet"], distill_weight=10.0)
 # 1-5 frames old (up to comm.max_age_ms 500 at 10 Hz), each with the message before it; only the
 # extrapolation module trains. `methods`: the method whose checkpoint it extends (it replaces none).
 SPECS[EXTRAPOLATE] = StageSpec(EXTRAPOLATE, ("cobevt",), "cache", "coop", 3, 1200, 4, 1e-3, 5, (1, 2, 3, 4, 5))
+# A channel compressor (models.compression) between the frozen encoder's cached features and the frozen `single`
+# heads, one CAV's own map: the task loss through the heads plus the features' reconstruction error (relative
+# to their mean square), so that the decompressed map serves every fusion method, not only these heads.
+SPECS[COMPRESS] = StageSpec(COMPRESS, (), "cache", "self", 1, 1200, 4, 2e-3, 1, (0,), recon_weight=1.0)
 
 
 @dataclass(frozen=True)
@@ -84,6 +99,9 @@ class TrainArgs:
     workers: int = 0  # DataLoader processes (0: load in the training process)
     overrides: tuple[tuple[str, object], ...] = ()  # StageSpec fields from flags
     command: str = ""
+    cells: int | None = None  # LiDAR fusion grid (default: the --out zoo's, else the preset's)
+    ratios: tuple[int, ...] = COMPRESS_RATIOS  # `compress` stage
+    bf16: bool = False  # bfloat16 autocast in the forward pass (CPU with AMX, or CUDA)
 
 
 # ---- models per stage ----------------------------------------------------------------------------
@@ -91,6 +109,51 @@ class TrainArgs:
 
 def _prefixed(state: dict, prefix: str) -> dict:
     return {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}
+
+
+def train_cells(args: TrainArgs) -> int | None:
+    """The LiDAR fusion grid of this training: --cells, else the --out zoo's (a stage joins that zoo), else the
+    preset's; None for a camera encoder."""
+    if MODALITY[args.encoder] != "lidar":
+        return None
+    entry = zoo.zoo_entry(args.encoder, args.preset, args.out)
+    return args.cells or zoo.zoo_cells(entry, get_preset(args.preset).cells)
+
+
+def check_zoo_grid(args: TrainArgs) -> None:
+    """Before training: a --cells that differs from the --out zoo's grid would be refused at export."""
+    entry = zoo.zoo_entry(args.encoder, args.preset, args.out)
+    if entry is None or MODALITY[args.encoder] != "lidar" or not entry.get("files"):
+        return
+    have = zoo.zoo_cells(entry, 0)
+    if args.cells and args.cells != have:
+        name = zoo.zoo_name(args.encoder, args.preset)
+        raise DatasetError(f"--cells {args.cells}: the zoo at {args.out} ({name}) was trained at {have} x {have}; "
+                           f"train a {args.cells} x {args.cells} zoo into another --out")
+
+
+def wire_compressor(args: TrainArgs) -> ChannelCompressor | None:
+    """The --out zoo's compressor of its wire ratio (frozen), through which every stage after `compress` reads
+    the cached features, as the ego reads them off the wire; None when the zoo's wire is uncompressed."""
+    entry = zoo.zoo_entry(args.encoder, args.preset, args.out)
+    ratio = zoo.wire_ratio(entry)
+    if ratio == 1:
+        return None
+    path = zoo.compressor_file(entry, ratio, args.out, args.encoder, args.preset)
+    try:
+        state = zoo.load_checkpoint(path, entry)
+    except zoo.ZooError as e:
+        raise DatasetError(str(e)) from None
+    comp = ChannelCompressor(get_preset(args.preset).channels, ratio)
+    comp.load_state_dict(_prefixed(state, "compressor."))
+    for p in comp.parameters():
+        p.requires_grad_(False)
+    return comp.eval()
+
+
+def stage_dir(spec: StageSpec) -> str:
+    """The stage's folder under --work: its name, and for `compress` its ratio too (compress_r8, ...)."""
+    return f"{spec.name}_r{spec.ratio}" if spec.name == COMPRESS else spec.name
 
 
 def stage_file(args: TrainArgs, stage: str) -> Path:
@@ -124,7 +187,7 @@ def build_extrapolation_model(args: TrainArgs, spec: StageSpec) -> nn.Module:
     encoder keeps its seeded initial weights (the stage reads the feature cache, never runs it)."""
     (method,) = spec.methods
     torch.manual_seed(args.seed)
-    model = build_cooperative(args.encoder, method, args.preset)
+    model = build_cooperative(args.encoder, method, args.preset, cells=train_cells(args))
     state = zoo_state(args, method)
     model.fusion.load_state_dict(_prefixed(state, "fusion."))
     model.heads.load_state_dict(_prefixed(state, "heads."))
@@ -135,21 +198,24 @@ def build_extrapolation_model(args: TrainArgs, spec: StageSpec) -> nn.Module:
 def build_stage_model(args: TrainArgs, spec: StageSpec) -> nn.Module:
     if spec.name == EXTRAPOLATE:
         return build_extrapolation_model(args, spec)
-    method = "none" if spec.name == "single" else spec.name
+    method = "none" if spec.name in ("single", COMPRESS) else spec.name
     torch.manual_seed(args.seed)
-    model = build_cooperative(args.encoder, method, args.preset)
+    model = build_cooperative(args.encoder, method, args.preset, cells=train_cells(args))
     if spec.name != "single":
         single = load_stage_state(args, "single")
         model.encoder.load_state_dict(_prefixed(single, "encoder."))
         model.heads.load_state_dict(_prefixed(single, "heads."))
+    if spec.name == COMPRESS:  # a fresh compressor between the frozen encoder and the frozen heads
+        model.compressor = ChannelCompressor(model.encoder.out_channels, spec.ratio)
     return model
 
 
 def trainable(model: nn.Module, spec: StageSpec) -> list[nn.Parameter]:
-    if spec.name == EXTRAPOLATE:  # the method's model stays frozen; gradients only flow through it
+    if spec.name in (EXTRAPOLATE, COMPRESS):  # the model stays frozen; gradients only flow through it
+        add_on = model.extrapolation if spec.name == EXTRAPOLATE else model.compressor
         for p in model.parameters():
             p.requires_grad_(False)
-        params = list(model.extrapolation.parameters())
+        params = list(add_on.parameters())
         for p in params:
             p.requires_grad_(True)
         return params
@@ -163,6 +229,8 @@ def trainable(model: nn.Module, spec: StageSpec) -> list[nn.Parameter]:
 def state_to_save(model: nn.Module, spec: StageSpec) -> dict:
     if spec.name == EXTRAPOLATE:
         return {f"extrapolation.{k}": v for k, v in model.extrapolation.state_dict().items()}
+    if spec.name == COMPRESS:
+        return {f"compressor.{k}": v for k, v in model.compressor.state_dict().items()}
     parts = {"fusion": model.fusion, "heads": model.heads}
     if spec.name in ("single", "early"):
         parts["encoder"] = model.encoder
@@ -170,8 +238,8 @@ def state_to_save(model: nn.Module, spec: StageSpec) -> dict:
 
 
 def stages_for(name: str, encoder: str = "pointpillars") -> list[str]:
-    if name == "all":
-        return [s for s in STAGE_ORDER if MODALITY[encoder] == "lidar" or s != "early"]
+    if name == "all":  # a camera zoo: no early fusion (LiDAR points), and its 32 x 32 message fits uncompressed
+        return [s for s in STAGE_ORDER if MODALITY[encoder] == "lidar" or s not in ("early", COMPRESS)]
     if name not in STAGE_ORDER + EXTRA_STAGES:
         raise ValueError(f"--stage {name!r}: allowed: all, {', '.join(STAGE_ORDER + EXTRA_STAGES)}")
     return [name]

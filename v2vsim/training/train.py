@@ -35,6 +35,7 @@ import torch
 from torch import Tensor, nn
 
 from models import zoo
+from models.compression import ChannelCompressor
 from models.heads import AnchorTargetAssigner
 from models.registry import MODALITY, build_cooperative
 from v2vsim.data.layout import DatasetError, runs_of
@@ -50,17 +51,23 @@ from v2vsim.training.cache import (
 from v2vsim.training.extrapolate import extrapolate_batch
 from v2vsim.training.losses import distill_loss, perception_loss
 from v2vsim.training.stages import (
+    COMPRESS,
     EXTRAPOLATE,
     SPECS,
+    WIRE_RATIO,
     StageSpec,
     TrainArgs,
     _prefixed,
     build_stage_model,
+    check_zoo_grid,
     load_stage_state,
+    stage_dir,
     stage_file,
     stages_for,
     state_to_save,
+    train_cells,
     trainable,
+    wire_compressor,
     zoo_state,
 )
 from v2vsim.training.validate import validate
@@ -82,14 +89,24 @@ def _features(cache: FeatureCache, batch: dict, channels: int, cells: int) -> Te
     return out
 
 
-def forward(model: nn.Module, spec: StageSpec, batch: dict, cache: FeatureCache | None, dev: torch.device
-            ) -> dict[str, Tensor]:
+def forward(model: nn.Module, spec: StageSpec, batch: dict, cache: FeatureCache | None, dev: torch.device,
+            wire: ChannelCompressor | None = None) -> dict[str, Tensor]:
+    """The stage's outputs on a batch; cached features pass through the frozen `wire` compressor (the zoo's
+    wire ratio) as the ego receives them, or for the `compress` stage through the compressor it trains."""
     rel, valid = batch["rel_poses"].to(dev), batch["valid"].to(dev)
     if spec.inputs == "cache":
         enc = model.encoder
         feats = _features(cache, batch, enc.out_channels, enc.out_cells).to(dev)
+        if spec.name == COMPRESS:
+            decoded = model.compressor.over_the_wire(feats[:, 0])  # one CAV's own map
+            out = model.heads(decoded)
+            ms = feats[:, 0].pow(2).mean().clamp(min=1e-6)
+            return {"fused": decoded, **out, "recon": (decoded - feats[:, 0]).pow(2).mean() / ms}
+        if wire is not None:
+            with torch.no_grad():
+                feats = wire.over_the_wire(feats)
         if spec.name == EXTRAPOLATE:
-            feats = extrapolate_batch(model.extrapolation, feats, batch, cache, model.bev_size_m)
+            feats = extrapolate_batch(model.extrapolation, feats, batch, cache, model.bev_size_m, wire)
         fused = model.fuse(feats, rel, valid)
         return {"fused": fused, **model.heads(fused)}
     return model(*tensor_inputs(batch, dev))
@@ -123,6 +140,7 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
     if camera and args.stage == "early":
         raise ValueError(f"--stage early: early fusion ships LiDAR points; the {args.encoder} (camera) zoo has no "
                          "early stage")
+    check_zoo_grid(args)
     if args.stage == "cache":
         encoder, source = cache_encoder(args, log)
         store = CooperativeDataset(args.data, "train").store
@@ -131,6 +149,11 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
         write_cache_encoder(args.work / "cache", source, encoder.state_dict())
         return {}
     spec = dataclasses.replace(SPECS[args.stage], **dict(args.overrides))
+    if spec.name == COMPRESS:
+        if camera or len(args.ratios) != 1:
+            raise ValueError(f"--stage compress: one ratio per run of the stage (main_train loops over --ratios), "
+                             f"for a LiDAR zoo; got {args.ratios} for {args.encoder}")
+        spec = dataclasses.replace(spec, ratio=args.ratios[0])
     if spec.name == EXTRAPOLATE:
         check_cache_encoder(args, spec, log)
     if camera and spec.distill_weight > 0:  # DiscoNet's teacher is early fusion: LiDAR only
@@ -139,6 +162,11 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
         raise ValueError(f"--yaw-jitter: turns one camera agent's frame; stage {spec.name!r} of {args.encoder} "
                          "cannot use it (only a camera zoo's `single` stage)")
     cache = FeatureCache(args.work / "cache") if spec.inputs == "cache" else None
+    if cache is not None:
+        check_cache_grid(cache, args)
+    wire = wire_compressor(args) if spec.inputs == "cache" and spec.name != COMPRESS else None
+    if wire is not None:
+        print(f"[{spec.name}] features through the zoo's wire compressor, ratio {wire.ratio}", file=log, flush=True)
     raw = spec.inputs == "points" or spec.distill_weight > 0  # the encoder (or the teacher) runs on sensor data
     extrapolate = spec.name == EXTRAPOLATE
     train = CooperativeDataset(args.data, "train", max_agents=spec.max_agents, delays=spec.delays, seed=args.seed,
@@ -156,7 +184,7 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
     single = model if spec.name in ("single", "none", EXTRAPOLATE) else build_stage_model(args, SPECS["none"])
     teacher = None
     if spec.distill_weight > 0:
-        teacher = build_cooperative(args.encoder, "early", args.preset)
+        teacher = build_cooperative(args.encoder, "early", args.preset, cells=train_cells(args))
         st = load_stage_state(args, "early")
         teacher.encoder.load_state_dict(_prefixed(st, "encoder."))
         teacher.heads.load_state_dict(_prefixed(st, "heads."))
@@ -167,7 +195,7 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
     total = steps_per_epoch * spec.epochs
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=spec.lr, total_steps=total, pct_start=0.1)
     assigner = AnchorTargetAssigner(model.anchors) if model.heads.detection is not None else None
-    work = args.work / spec.name
+    work = stage_file(args, stage_dir(spec)).parent
     work.mkdir(parents=True, exist_ok=True)
     last = work / "last.pt"
     epoch, step, wall, history = 0, 0, 0.0, []
@@ -196,9 +224,9 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
         model.train()
         if spec.inputs == "cache":
             model.encoder.eval()
-        if extrapolate:  # the method's model stays in inference mode (frozen); only the add-on trains
+        if extrapolate or spec.name == COMPRESS:  # the model stays in inference mode (frozen); the add-on trains
             model.eval()
-            model.extrapolation.train()
+            (model.extrapolation if extrapolate else model.compressor).train()
         train.epoch = epoch
         perm = np.random.default_rng([args.seed, epoch]).permutation(len(train))
         perm = np.resize(perm, steps_per_epoch * spec.batch)
@@ -207,8 +235,13 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
             if spec.yaw_jitter_deg:  # seeded per step, so a resumed run draws the same angles
                 u = torch.from_numpy(np.random.default_rng([args.seed, epoch, s]).uniform(-1, 1, len(batch["valid"])))
                 batch = yaw_rotate_batch(batch, torch.deg2rad(u * spec.yaw_jitter_deg), model.bev_size_m)
-            out = forward(model, spec, batch, cache, dev)
+            with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=args.bf16):
+                out = forward(model, spec, batch, cache, dev, wire)
+            out = {k: v.float() for k, v in out.items()}
             losses = perception_loss(out, batch, spec.target, assigner, spec.lane_weight)
+            if spec.recon_weight:
+                losses["recon"] = spec.recon_weight * out["recon"]
+                losses["total"] = losses["total"] + losses["recon"]
             if teacher is not None:
                 with torch.no_grad():
                     t_out = teacher(*tensor_inputs(batch, dev))
@@ -228,7 +261,7 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
                 save(epoch, s + 1)
                 last_save = time.monotonic()
         if (epoch + 1) % max(args.val_every, 1) == 0 or epoch + 1 == spec.epochs:
-            metrics = validate(spec, model, single, val, cache, spec.val_samples)
+            metrics = validate(spec, model, single, val, cache, spec.val_samples, wire)
             history.append({"epoch": epoch + 1, "loss": running, "validation": metrics})
             summary = ", ".join(f"{m}: IoU veh {v['iou_vehicle']} road {v['iou_road']} lane {v['iou_lane']} "
                                 f"AP50 {v['ap50']} AP70 {v['ap70']}" for m, v in metrics.items())
@@ -245,7 +278,7 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
         last_save = time.monotonic()
     wall_total = wall + time.monotonic() - t_seg
     final = state_to_save(model, spec)
-    final_path = stage_file(args, spec.name)
+    final_path = stage_file(args, stage_dir(spec))
     torch.save({"state_dict": final, "spec": dataclasses.asdict(spec)}, final_path)
     export(args, spec, final, history, wall_total, train.store.manifest)
     return history[-1]["validation"] if history else {}
@@ -272,11 +305,19 @@ def cache_encoder(args: TrainArgs, log) -> tuple[nn.Module, str]:
     if path is None:  # neither: the usual "train single first" error
         load_stage_state(args, "single")
     torch.manual_seed(args.seed)
-    encoder = build_cooperative(args.encoder, "none", args.preset).encoder
+    encoder = build_cooperative(args.encoder, "none", args.preset, cells=train_cells(args)).encoder
     encoder.load_state_dict(_prefixed(zoo_state(args, "encoder"), "encoder."))
     print(f"[cache] {stage_file(args, 'single')} does not exist: encoding with the zoo's encoder {path}",
           file=log, flush=True)
     return encoder, str(path)
+
+
+def check_cache_grid(cache: FeatureCache, args: TrainArgs) -> None:
+    """A cache holds one grid's features: refuse one made at another grid than this training's."""
+    cells = train_cells(args)
+    if cells is not None and tuple(cache.shape[-2:]) != (cells, cells):
+        raise DatasetError(f"{args.work / 'cache'}: features of a {cache.shape[-1]} x {cache.shape[-1]} grid, this "
+                           f"training is at {cells} x {cells}; use another --work (or rebuild its cache)")
 
 
 def check_cache_encoder(args: TrainArgs, spec: StageSpec, log) -> None:
@@ -306,8 +347,12 @@ def export(args: TrainArgs, spec: StageSpec, state: dict, history: list, wall_s:
     name = "single.pt" if spec.name == "single" else f"{spec.name}.pt"
     if extrapolate:
         name = f"{spec.methods[0]}_{EXTRAPOLATE}.pt"
+    if spec.name == COMPRESS:
+        name = f"compressor_r{spec.ratio}.pt"
     path = args.out / zoo.zoo_name(args.encoder, args.preset) / name
-    config = {"spec": dataclasses.asdict(spec), "seed": args.seed, "encoder": args.encoder, "preset": args.preset}
+    cells = train_cells(args)
+    config = {"spec": dataclasses.asdict(spec), "seed": args.seed, "encoder": args.encoder, "preset": args.preset,
+              "cells": cells, "bf16": args.bf16}
     zoo.save_checkpoint(path, state, encoder=args.encoder, preset=args.preset, stage=spec.name,
                         methods=list(spec.methods), config=config)
     runs = {s: [r["name"] for r in runs_of(manifest, s)] for s in ("train", "val", "eval")}
@@ -317,7 +362,7 @@ def export(args: TrainArgs, spec: StageSpec, state: dict, history: list, wall_s:
         "data": {"root": str(args.data), "runs": runs,
                  "train_frames": sum(r["frames"] for r in runs_of(manifest, "train"))},
         "epochs": spec.epochs, "samples_per_epoch": spec.samples_per_epoch, "batch": spec.batch,
-        "wall_s": round(wall_s, 1), "device": args.device, "threads": args.threads,
+        "wall_s": round(wall_s, 1), "device": args.device, "threads": args.threads, "bf16": args.bf16,
         "validation": history[-1]["validation"] if history else None,
     }
     if extrapolate:  # the checkpoint it was trained on top of (build_extrapolation refuses another one)
@@ -327,15 +372,20 @@ def export(args: TrainArgs, spec: StageSpec, state: dict, history: list, wall_s:
                                 "sha256": entry["files"][base.name]["sha256"]}
     zoo.register(path, encoder=args.encoder, preset=args.preset, methods=[] if extrapolate else list(spec.methods),
                  info=info, root=args.out, provides_encoder=spec.name == "single",
-                 extrapolates=tuple(spec.methods) if extrapolate else ())
+                 extrapolates=tuple(spec.methods) if extrapolate else (), cells=cells,
+                 compresses=spec.ratio if spec.name == COMPRESS else None)
+    if spec.name == COMPRESS and spec.ratio == WIRE_RATIO:  # every later stage trains on this wire
+        zoo.set_wire_ratio(args.encoder, args.preset, WIRE_RATIO, args.out)
     return path
 
 
 def main_train(args: TrainArgs, log=sys.stderr) -> int:
     for st in stages_for(args.stage, args.encoder):
-        t0 = time.monotonic()
-        run_stage(dataclasses.replace(args, stage=st), log=log)
-        print(f"[{st}] done in {(time.monotonic() - t0) / 60:.1f} min", file=log, flush=True)
+        for ratios in ([(r,) for r in args.ratios] if st == COMPRESS else [args.ratios]):
+            t0 = time.monotonic()
+            run_stage(dataclasses.replace(args, stage=st, ratios=ratios), log=log)
+            what = f"{st} (ratio {ratios[0]})" if st == COMPRESS else st
+            print(f"[{what}] done in {(time.monotonic() - t0) / 60:.1f} min", file=log, flush=True)
     return 0
 
 

@@ -1,0 +1,123 @@
+"""The LiDAR grid and the wire's trained channel compressors: a zoo records its grid, the `compress` stage
+trains one compressor per ratio that later stages and a run load, and a ratio the zoo has no compressor for
+is a config error naming the ratio and the command that trains it. Nothing here trains for real."""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+
+import numpy as np
+import pytest
+import torch
+
+from models import zoo
+from models.compression import ChannelCompressor
+from v2vsim.config import ConfigError, load_scenario
+from v2vsim.data.layout import DatasetError
+from v2vsim.perception.build import (
+    build_agent_encoder,
+    build_compressor,
+    build_method_models,
+    check_scenario,
+    compress,
+    decompress,
+    fusion_cells,
+    wire_ratio,
+)
+from v2vsim.training.stages import TrainArgs
+from v2vsim.training.train import main_train, run_stage
+
+
+def _args(data, tmp_path, stage: str, **kw) -> TrainArgs:
+    return TrainArgs(data=data, stage=stage, out=tmp_path / "zoo", work=tmp_path / "work", threads=1,
+                     overrides=(("epochs", 1), ("samples_per_epoch", 2), ("batch", 2), ("val_samples", 2)), **kw)
+
+
+@pytest.fixture(scope="module")
+def compressed_zoo(tiny_dataset, tmp_path_factory):
+    """A 64 x 64 zoo: single, cache, compressors for ratios 8 and 16 (8 = the wire), none, cobevt."""
+    tmp = tmp_path_factory.mktemp("compressed")
+    log = io.StringIO()
+    for stage in ("single", "cache"):
+        run_stage(_args(tiny_dataset, tmp, stage, cells=64), log=log)
+    main_train(_args(tiny_dataset, tmp, "compress", ratios=(8, 16)), log=log)
+    for stage in ("none", "cobevt"):
+        run_stage(_args(tiny_dataset, tmp, stage), log=log)
+    return tmp, log.getvalue()
+
+
+def test_the_compress_stage_registers_a_compressor_per_ratio_and_the_wire(compressed_zoo) -> None:
+    tmp, log = compressed_zoo
+    entry = zoo.read_manifest(tmp / "zoo")["zoos"]["pointpillars_tiny"]
+    assert entry["cells"] == 64
+    assert entry["compressors"] == {"8": "compressor_r8.pt", "16": "compressor_r16.pt"}
+    assert entry["wire_ratio"] == 8
+    assert entry["files"]["compressor_r16.pt"]["stage"] == "compress"
+    state = torch.load(tmp / "zoo" / "pointpillars_tiny" / "compressor_r16.pt", weights_only=True)["state_dict"]
+    assert state["compressor.encoder.weight"].shape == (4, 64, 1, 1)  # 64 channels -> 64 / 16
+    assert not any(k.startswith(("fusion.", "heads.", "encoder.")) for k in state)
+    # the stages after it read the cache through the wire's compressor (ratio 8), and say so
+    assert "[cobevt] features through the zoo's wire compressor, ratio 8" in log
+    assert "[none] features through the zoo's wire compressor, ratio 8" in log
+
+
+def test_a_run_loads_the_zoo_grid_and_its_trained_compressor(compressed_zoo) -> None:
+    tmp, _ = compressed_zoo
+    sc = load_scenario("scenarios/intersection.yaml", [f"perception.weights={tmp / 'zoo'}"])
+    assert fusion_cells(sc) == 64 and wire_ratio(sc) == 8  # channel_compression: null = the zoo's wire ratio
+    enc = build_agent_encoder(sc)
+    assert enc.out_cells == 64
+    models = build_method_models(sc, enc, ("none", "cobevt"))
+    assert models["cobevt"].heads.in_cells == 64
+    comp = build_compressor(sc, enc.out_channels)
+    saved = torch.load(tmp / "zoo" / "pointpillars_tiny" / "compressor_r8.pt", weights_only=True)["state_dict"]
+    assert torch.equal(comp.encoder.weight, saved["compressor.encoder.weight"])
+    # the sender's payload is C / 8 channels; the receiver restores C
+    feats = np.random.default_rng(0).random((64, 64, 64), dtype=np.float32)
+    payload = compress(comp, feats).astype(np.float16)
+    assert payload.shape == (8, 64, 64)
+    assert decompress(comp, payload).shape == (64, 64, 64)
+    sixteen = load_scenario("scenarios/intersection.yaml",
+                            [f"perception.weights={tmp / 'zoo'}", "comm.channel_compression=16"])
+    assert build_compressor(sixteen, 64).ratio == 16
+    off = load_scenario("scenarios/intersection.yaml", [f"perception.weights={tmp / 'zoo'}", "comm.channel_compression=1"])
+    assert build_compressor(off, 64) is None and wire_ratio(off) == 1
+
+
+def test_a_ratio_without_a_trained_compressor_is_a_config_error(compressed_zoo) -> None:
+    tmp, _ = compressed_zoo
+    sc = load_scenario("scenarios/intersection.yaml",
+                       [f"perception.weights={tmp / 'zoo'}", "comm.channel_compression=32"])
+    with pytest.raises(ConfigError) as e:
+        check_scenario(sc)
+    msg = str(e.value)
+    assert "comm.channel_compression: 32" in msg and "no trained compressor for ratio 32" in msg
+    assert "allowed: 1, 8, 16" in msg and "--stage compress --ratios 32" in msg
+
+
+def test_random_weights_may_use_a_seeded_compressor_and_the_shipped_zoo_keeps_its_grid() -> None:
+    sc = load_scenario("scenarios/intersection.yaml", ["perception.weights=none", "comm.channel_compression=16"])
+    a, b = build_compressor(sc, 64), build_compressor(sc, 64)
+    assert isinstance(a, ChannelCompressor) and torch.equal(a.encoder.weight, b.encoder.weight)
+    shipped = load_scenario("scenarios/intersection.yaml")
+    entry = zoo.zoo_entry("pointpillars", "tiny")
+    assert fusion_cells(shipped) == entry["cells"] == build_agent_encoder(shipped).out_cells
+
+
+def test_a_grid_other_than_the_zoo_s_is_refused_before_training(compressed_zoo, tiny_dataset) -> None:
+    tmp, _ = compressed_zoo
+    with pytest.raises(DatasetError, match="trained at 64 x 64"):
+        run_stage(dataclasses.replace(_args(tiny_dataset, tmp, "none"), cells=32), log=io.StringIO())
+
+
+def test_over_the_wire_rounds_to_the_float16_payload_and_passes_gradients() -> None:
+    torch.manual_seed(0)
+    comp = ChannelCompressor(16, 4).eval()
+    x = torch.randn(2, 3, 16, 8, 8, requires_grad=True)  # [B, L, C, H, W]
+    y = comp.over_the_wire(x)
+    assert y.shape == x.shape
+    z = comp.compress(x.detach().reshape(-1, 16, 8, 8)).half().float()
+    assert torch.equal(y.detach(), comp.decompress(z).reshape(2, 3, 16, 8, 8))
+    y.sum().backward()
+    assert x.grad is not None and x.grad.abs().sum() > 0
