@@ -185,7 +185,8 @@ def describe_models(preset: str, agents: int = 4) -> list[dict]:
         names = ["decoder.stages.0", "decoder.stages.1", "decoder.stages.2", "dynamic", "static"]
         if heads.detection is not None:
             names += ["detection.cls", "detection.reg"]
-        stages = _hook_shapes(heads, names, lambda heads=heads: heads(feats[:, 0]))
+        x = torch.randn(1, p.channels, heads.in_cells, heads.in_cells)  # the fused map of that modality's grid
+        stages = _hook_shapes(heads, names, lambda heads=heads, x=x: heads(x))
         rows.append(_row(f"heads-{modality}", "decoder+heads", heads, stages, dict(stages)["dynamic"]))
     for name in METHODS:
         if name not in FUSION:  # the brackets: no module of their own

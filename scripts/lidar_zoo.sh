@@ -1,16 +1,25 @@
 #!/usr/bin/env bash
 # Rebuild the LiDAR model zoo from scratch (docs/training.md): record the dataset, then train every
-# stage into models/weights/. Each step resumes where it stopped if re-run.
+# stage into ZOO_DIR (default models/weights/). Each step resumes where it stopped if re-run.
 #   scripts/lidar_zoo.sh [DATA_DIR] [WORK_DIR] [ZOO_DIR]
+# The grid is the tiny preset's (64 x 64, 1.56 m cells); ZOO_DIR must not hold a zoo of another grid.
+# BF16=0 trains the stages after the cache in float32 (default: bfloat16 autocast, docs/training.md).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DATA=${1:-data/lidar}
 WORK=${2:-runs/train}
 ZOO=${3:-models/weights}
 V=${V2VSIM:-v2vsim}
-scripts/zoo_data.sh "$DATA" 10
-# single (encoder + heads) -> cache (its frozen features) -> none/late heads, early, then every intermediate
-# method on the same cached features; DiscoNet last (its teacher is early).
-for stage in single cache none early cobevt v2vnet attfuse fcooper disconet; do
-  $V train --data "$DATA" --stage $stage --out "$ZOO" --work "$WORK" --resume
+BF16=${BF16:-1}
+scripts/zoo_data.sh "$DATA" 20 --jobs 2
+# single (encoder + heads) -> cache (its frozen features) -> compress (the wire's compressors, ratio 8 = the
+# wire) -> none/late heads, early, then every intermediate method on the same cached features through the
+# wire; DiscoNet last (its teacher is early).
+$V train --data "$DATA" --stage single --out "$ZOO" --work "$WORK" --resume
+$V train --data "$DATA" --stage cache --out "$ZOO" --work "$WORK"
+$V train --data "$DATA" --stage compress --out "$ZOO" --work "$WORK" --resume
+flags=()
+[ "$BF16" = 1 ] && flags=(--bf16)
+for stage in none early cobevt v2vnet attfuse fcooper disconet; do
+  $V train --data "$DATA" --stage $stage --out "$ZOO" --work "$WORK" --resume "${flags[@]}"
 done

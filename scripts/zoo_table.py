@@ -2,7 +2,7 @@
 
     python scripts/zoo_table.py RUN_DIR [RUN_DIR ...]
 
-Each RUN_DIR holds a metrics.json. Prints, per (scenario, camera encoder, channel), one row per method with
+Each RUN_DIR holds a metrics.json (a sweep's runs: OUT/runs/<point>/seed<N>). Prints, per (scenario, camera encoder, channel), one row per method with
 visible-vehicle IoU, all-vehicle IoU, road, lane, AP@0.5, AP@0.7 and bytes/frame, averaged over
 the runs (seeds) given, and the number of runs.
 """
@@ -22,7 +22,8 @@ def main(dirs: list[str]) -> None:
     groups: dict[tuple[str, str, str], list[dict]] = defaultdict(list)
     for d in dirs:
         doc = json.loads((Path(d) / "metrics.json").read_text())
-        channel = "ideal" if "ideal" in Path(d).name else "default"
+        # a run of scripts/eval_zoo.sh's sweep: .../runs/comm.bandwidth_mbps=null/seed3 (older: .../NAME_ideal)
+        channel = "ideal" if "ideal" in Path(d).name or "bandwidth_mbps=null" in str(d) else "default"
         encoder = "" if doc.get("modality", "lidar") == "lidar" else f" ({doc['encoder']})"
         groups[(doc["scenario"], encoder, channel)].append(doc)
     for (scenario, encoder, channel), docs in sorted(groups.items()):

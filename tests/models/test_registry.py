@@ -50,7 +50,7 @@ def test_builds_every_fusion_and_heads(preset: str) -> None:
 @pytest.mark.parametrize("name", sorted(ENCODERS))
 def test_builds_every_encoder(name: str) -> None:
     enc = build_encoder(name, "tiny")
-    assert (enc.out_channels, enc.out_cells) == (64, 32)
+    assert (enc.out_channels, enc.out_cells) == (64, 64 if name == "pointpillars" else 32)
     paper = build_encoder(name, "paper")
     assert (paper.out_channels, paper.out_cells) == (128, 32)
 
@@ -103,8 +103,27 @@ def test_cooperative_forward_and_predict_every_method(method: str) -> None:
         clouds[0][-1] = torch.full((100, 4), 7.0)
         out2 = model(clouds, poses, valid)
     assert out["dynamic"].shape == (1, 2, 256, 256) and out["static"].shape == (1, 3, 256, 256)
-    assert out["det_cls"].shape == (1, 2, 128, 128) and out["fused"].shape == (1, 64, 32, 32)
+    assert out["det_cls"].shape == (1, 2, 128, 128) and out["fused"].shape == (1, 64, 64, 64)
     assert torch.equal(out["dynamic"], out2["dynamic"])
+
+
+@pytest.mark.parametrize("cells", [32, 64, 128])
+def test_every_lidar_grid_decodes_to_the_same_maps(cells: int) -> None:
+    """The tiny preset's LiDAR grid is 64 x 64 (1.56 m cells); 32 and 128 build too (the grid study). Whatever
+    the grid: features C x F x F, the same 256 x 256 segmentation and 128 x 128 anchors, the decoder's three
+    stages with the first upsamplings skipped on a finer grid."""
+    model = build_cooperative("pointpillars", "cobevt", "tiny", cells=cells).eval()
+    clouds, poses, valid = _lidar_batch()
+    with torch.no_grad():
+        out = model(clouds, poses, valid)
+    assert out["features"].shape[2:] == (64, cells, cells) and out["fused"].shape == (1, 64, cells, cells)
+    assert out["dynamic"].shape == (1, 2, 256, 256) and out["det_cls"].shape == (1, 2, 128, 128)
+    assert model.anchors.shape == (128 * 128 * 2, 5)
+    assert model.heads.decoder.scales == {32: (2, 2, 2), 64: (1, 2, 2), 128: (1, 1, 2)}[cells]
+    assert build_cooperative("pointpillars", "none", "tiny").encoder.out_cells == get_preset("tiny").cells == 64
+    assert build_cooperative("sinbevt", "none", "tiny").heads.in_cells == 32  # the camera grid is its own
+    with pytest.raises(ValueError, match="cannot be decoded"):
+        build_heads("lidar", "tiny", 48)
 
 
 def test_camera_pipeline_rejects_early() -> None:
@@ -118,9 +137,13 @@ def test_describe_models_tiny() -> None:
     for n in [*ENCODERS, *FUSION, "late", "early", "heads-lidar", "heads-camera"]:
         assert n in names
     by = {r["name"]: r for r in rows}
-    assert by["pointpillars"]["output"] == [1, 64, 32, 32]
-    assert by["fcooper"]["output"] == [1, 64, 32, 32]
+    assert by["pointpillars"]["output"] == [1, 64, 64, 64]
+    assert by["sinbevt"]["output"] == [1, 64, 32, 32]
+    assert by["fcooper"]["output"] == [1, 64, 64, 64]
+    assert by["heads-lidar"]["stages"][0]["shape"] == [1, 32, 64, 64]  # no upsampling before the first conv
     assert by["heads-lidar"]["stages"][2]["shape"] == [1, 16, 256, 256]
+    assert by["heads-camera"]["stages"][0]["shape"] == [1, 32, 64, 64]
+    assert by["heads-camera"]["stages"][2]["shape"] == [1, 16, 256, 256]
     assert all(r["params"] >= 0 for r in rows)
     json.dumps(rows)
     table = format_models_table(rows)

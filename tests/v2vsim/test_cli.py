@@ -36,8 +36,10 @@ def _one_line_exit_2(argv: list[str], capsys: pytest.CaptureFixture[str], *expec
     (["--set", "cavs.ego=[cav9]"], ["cavs.ego[0]", "'cav9'", "cav0, cav1, cav2, cav3"]),
     (["--set", "cavs.ego=[cav0,cav0]"], ["cavs.ego[1]", "listed twice"]),
     (["--run-id", "a/b"], ["--run-id"]),
-    # no zoo ships a trained compressor: a random one behind trained models is refused, not run silently
-    (["--set", "comm.channel_compression=8"], ["comm.channel_compression: 8", "no trained compressor"]),
+    # a ratio without a trained compressor in the zoo: refused (naming the command that trains it), not run with a
+    # random one behind trained models
+    (["--set", "comm.channel_compression=2"], ["comm.channel_compression: 2", "no trained compressor for ratio 2",
+                                               "--stage compress --ratios 2"]),
     (["--set", "comm.fusion_deadline_ms=100"], ["comm.fusion_deadline_ms", "less than one frame"]),
 ])
 def test_run_refuses_bad_arguments(args: list[str], expect: list[str], tmp_path: Path,

@@ -110,8 +110,9 @@ def report_md(doc: dict, summary: RunSummary) -> str:
         ", overrides: " + " ".join(f"`--set {o}`" for o in sc.overrides) if sc.overrides else ", no overrides") + ".")
     if summary.grid_cells:
         cell = sc.bev.size_m / summary.grid_cells
-        wire = (f"compressed {summary.wire_ratio}x to {summary.channels // summary.wire_ratio} channels by the zoo's "
-                f"trained compressor" if summary.wire_ratio > 1 else "uncompressed")
+        by = "an untrained (seeded random) compressor" if summary.untrained else "the zoo's trained compressor"
+        wire = (f"compressed {summary.wire_ratio}x to {summary.channels // summary.wire_ratio} channels by {by}"
+                if summary.wire_ratio > 1 else "uncompressed")
         lines += ["", f"Feature messages: {summary.channels} x {summary.grid_cells} x {summary.grid_cells} "
                   f"({cell:.2f} m cells), {wire}, float16."]
     if summary.untrained:

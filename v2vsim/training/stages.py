@@ -161,10 +161,19 @@ def stage_file(args: TrainArgs, stage: str) -> Path:
 
 
 def load_stage_state(args: TrainArgs, stage: str) -> dict:
+    """A finished stage's weights: its final.pt under --work, or where --work has none (a zoo trained over
+    several sessions, its work folder lost) the stage's verified checkpoint in the --out zoo."""
     p = stage_file(args, stage)
-    if not p.is_file():
-        raise DatasetError(f"{p}: stage {stage!r} has not finished; run `v2vsim train --stage {stage}` first")
-    return torch.load(p, map_location="cpu", weights_only=True)["state_dict"]
+    if p.is_file():
+        return torch.load(p, map_location="cpu", weights_only=True)["state_dict"]
+    entry = zoo.zoo_entry(args.encoder, args.preset, args.out)
+    name = "single.pt" if stage == "single" else f"{stage}.pt"
+    if entry is not None and name in entry.get("files", {}):
+        try:
+            return zoo.load_checkpoint(args.out / zoo.zoo_name(args.encoder, args.preset) / name, entry)
+        except zoo.ZooError as e:
+            raise DatasetError(str(e)) from None
+    raise DatasetError(f"{p}: stage {stage!r} has not finished; run `v2vsim train --stage {stage}` first")
 
 
 def zoo_state(args: TrainArgs, method: str) -> dict:

@@ -121,3 +121,29 @@ def test_over_the_wire_rounds_to_the_float16_payload_and_passes_gradients() -> N
     assert torch.equal(y.detach(), comp.decompress(z).reshape(2, 3, 16, 8, 8))
     y.sum().backward()
     assert x.grad is not None and x.grad.abs().sum() > 0
+
+
+def test_a_compressed_message_round_trips_through_the_codec_and_the_wire_spec(compressed_zoo) -> None:
+    """CAV side: trained compressor -> float16 payload -> feature message -> bytes; ego side: the decoder built
+    from the wire spec of the zoo's ratio accepts it, another ratio's refuses it, and decompress restores C."""
+    from v2vsim.comm.codec import RejectedMessage, decode, encode
+    from v2vsim.comm.share import feature_message
+    from v2vsim.comm.wire_spec import ego_wire_spec
+
+    tmp, _ = compressed_zoo
+    sc = load_scenario("scenarios/intersection.yaml", [f"perception.weights={tmp / 'zoo'}"])
+    comp, ratio = build_compressor(sc, 64), wire_ratio(sc)
+    feats = np.random.default_rng(1).random((64, 64, 64), dtype=np.float32)
+    stamp = {"run_id": "r", "sender_id": "cav1", "frame": 3, "capture_time": 0.3, "sender_pose": (1.0, 2.0, 0.0, 0.1)}
+    payload = compress(comp, feats)  # as agents/cav.py: float32 [C/r, F, F]; the codec puts float16 on the air
+    data = encode(feature_message(payload, np.ones((64, 64), np.float32), 1.0, stamp, ratio))
+    assert len(data) < 64 * 64 * 8 * 2 + 1024  # 8 float16 channels and a header
+    spec = ego_wire_spec(sc, 64, 64, ratio)
+    got = decode(data, spec=spec)
+    assert got.channel_compression == 8 and got.payload.shape == (8, 64, 64)
+    restored = decompress(comp, got.payload)
+    assert restored.shape == (64, 64, 64)
+    want = comp.over_the_wire(torch.from_numpy(feats)[None])[0].detach().numpy()
+    assert np.allclose(restored, want, atol=1e-5)
+    with pytest.raises(RejectedMessage):
+        decode(data, spec=ego_wire_spec(sc, 64, 64, 16))
