@@ -2,7 +2,8 @@
 
     python scripts/zoo_table.py RUN_DIR [RUN_DIR ...]
 
-Each RUN_DIR holds a metrics.json (a sweep's runs: OUT/runs/<point>/seed<N>). Prints, per (scenario, camera encoder, channel), one row per method with
+Each RUN_DIR holds a metrics.json (a sweep's runs: OUT/runs/<point>/seed<N>).
+Prints, per (scenario, camera encoder, channel), one row per method with
 visible-vehicle IoU, all-vehicle IoU, road, lane, AP@0.5, AP@0.7 and bytes/frame, averaged over
 the runs (seeds) given, and the number of runs.
 """

@@ -81,7 +81,8 @@ def test_a_run_loads_the_zoo_grid_and_its_trained_compressor(compressed_zoo) -> 
     sixteen = load_scenario("scenarios/intersection.yaml",
                             [f"perception.weights={tmp / 'zoo'}", "comm.channel_compression=16"])
     assert build_compressor(sixteen, 64).ratio == 16
-    off = load_scenario("scenarios/intersection.yaml", [f"perception.weights={tmp / 'zoo'}", "comm.channel_compression=1"])
+    off = load_scenario("scenarios/intersection.yaml",
+                        [f"perception.weights={tmp / 'zoo'}", "comm.channel_compression=1"])
     assert build_compressor(off, 64) is None and wire_ratio(off) == 1
 
 
