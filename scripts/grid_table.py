@@ -15,6 +15,8 @@ def scores(out: Path) -> dict[int, dict[str, dict]]:
     """{cells: {method: validation metrics}} of every OUT/g<F>/zoo."""
     table: dict[int, dict[str, dict]] = {}
     for zoo in sorted(out.glob("g*/zoo/manifest.json")):
+        if not zoo.parent.parent.name[1:].isdigit():  # e.g. g64bf16: a variant, not a grid
+            continue
         cells = int(zoo.parent.parent.name[1:])
         entry = json.loads(zoo.read_text())["zoos"].get("pointpillars_tiny") or {}
         for name, info in (entry.get("files") or {}).items():
