@@ -3,6 +3,7 @@ method for N = 1, 2, 4, 8 agents, the decoder + heads, and the tiny per-frame bu
 (PointPillars on one 32k-point sweep + warp + FuseBEVT over 4 agents, target < 50 ms).
 
     v2vsim bench models [--presets tiny,paper] [--cells 32,64,128] [--repeats 5] [--json out.json]
+    v2vsim bench models --train-step [--presets tiny] [--cells 64] [--threads 2]
 
 --cells: the LiDAR fusion grids to time (PointPillars, every fusion method, the LiDAR heads and the frame at
 each; default: each preset's own); the camera encoders keep their own 32 x 32 grid.
@@ -103,6 +104,59 @@ def bench_preset(preset: str, repeats: int, cells: int | None = None) -> list[di
     return rows
 
 
+def _train_step(fus: torch.nn.Module, heads: torch.nn.Module, feats: torch.Tensor, bf16: bool
+                ) -> Callable[[], None]:
+    """One AdamW step of fusion + heads on `feats` [B, L, C, F, F] (every agent present)."""
+    params = [*fus.parameters(), *heads.parameters()]
+    opt = torch.optim.AdamW(params, lr=1e-4)
+    valid = torch.ones(feats.shape[:2], dtype=torch.bool)
+
+    def step() -> None:
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            out = heads(fus(feats, valid))
+        loss = sum(v.float().square().mean() for v in out.values())
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+
+    return step
+
+
+def bench_train_steps(preset: str, cells: int | None, repeats: int) -> list[dict]:
+    """Rows {preset, method, precision, ms}: one training step of each fusion stage's trainable part (fusion +
+    LiDAR heads, batch 4 x 4 agents of cached-size features, forward + backward + AdamW) in float32 and under
+    bfloat16 autocast, as `v2vsim train --bf16` runs it."""
+    p = get_preset(preset)
+    f = cells or p.cells
+    rows = []
+    for name in FUSION:
+        torch.manual_seed(0)
+        fus, heads = build_fusion(name, preset).train(), build_heads("lidar", preset, f).train()
+        feats = torch.randn(4, 4, p.channels, f, f).relu()
+        for precision in ("float32", "bfloat16"):
+            step = _train_step(fus, heads, feats, precision == "bfloat16")
+            times = []
+            for i in range(repeats + 1):  # the first one warms up
+                t = time.perf_counter()
+                step()
+                if i:
+                    times.append((time.perf_counter() - t) * 1e3)
+            rows.append({"preset": f"{preset} {f}x{f}", "method": name, "precision": precision,
+                         "ms": statistics.median(times)})
+    return rows
+
+
+def format_train_rows(rows: list[dict]) -> str:
+    out = ["| preset | method | float32 ms/step | bfloat16 ms/step | speed-up |", "|---|---|---:|---:|---:|"]
+    by: dict[tuple[str, str], dict[str, float]] = {}
+    for r in rows:
+        by.setdefault((r["preset"], r["method"]), {})[r["precision"]] = r["ms"]
+    for (preset, method), ms in by.items():
+        out.append(f"| {preset} | {method} | {ms['float32']:.0f} | {ms['bfloat16']:.0f} | "
+                   f"{ms['float32'] / ms['bfloat16']:.2f}x |")
+    return "\n".join(out)
+
+
 def format_rows(rows: list[dict]) -> str:
     """Markdown table: encoders/heads/frame one row each, fusion one row per method with N columns."""
     out = ["| preset | kind | name | params | ms (N=1) | ms (N=2) | ms (N=4) | ms (N=8) |",
@@ -130,12 +184,24 @@ def main(argv: list[str] | None = None) -> int:
                     help="LiDAR fusion grids to time (e.g. 32,64,128; default: each preset's own)")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--train-step", action="store_true",
+                    help="instead: one training step of each fusion stage (fusion + heads, batch 4 x 4 agents) in "
+                         "float32 and bfloat16 autocast")
     ap.add_argument("--json", default=None, help="also write the rows as JSON here")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     rows: list[dict] = []
     grids = [None] if args.cells is None else [int(c) for c in args.cells.split(",")]
+    if args.train_step:
+        rows = [r for preset in args.presets.split(",") for c in grids
+                for r in bench_train_steps(preset, c, args.repeats)]
+        print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), median of {args.repeats} steps")
+        print(format_train_rows(rows))
+        if args.json:
+            with open(args.json, "w") as fh:
+                json.dump(rows, fh, indent=1)
+        return 0
     for preset in args.presets.split(","):
         for cells in grids:
             rows += bench_preset(preset, args.repeats, cells)
