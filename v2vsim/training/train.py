@@ -181,7 +181,7 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
     model = build_stage_model(args, spec).to(dev)
     # the single-agent model: its encoder makes the wire features; with its heads, CAVs' late outputs
     # (the extrapolate stage reads every feature from the cache and scores no late method: it needs none)
-    single = model if spec.name in ("single", "none", EXTRAPOLATE) else build_stage_model(args, SPECS["none"])
+    single = model if spec.name in ("single", "none", EXTRAPOLATE, COMPRESS) else build_stage_model(args, SPECS["none"])
     teacher = None
     if spec.distill_weight > 0:
         teacher = build_cooperative(args.encoder, "early", args.preset, cells=train_cells(args))
