@@ -143,6 +143,8 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
             with timer.stage("comm"):
                 bus.put("features", encode(feature_message(compress(compressor, feats), confidence, share, stamp,
                                                            ratio), key))
+                if compressor is not None and me in args.egos:  # its ego fuses its own map uncompressed
+                    bus.put("own", encode(Message(kind="features", payload=feats, **stamp), key))
                 if "early" in methods and lidar:
                     bus.put("points", encode(Message(kind="points", payload=body_frame_points(sf, sc), **stamp), key))
             if late:

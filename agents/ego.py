@@ -94,11 +94,15 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
     c, f = encoder.out_channels, encoder.out_cells
     compressor = build_compressor(sc, c)
     decoder = EgoDecoder(ego_wire_spec(sc, c, f, wire_ratio(sc)), args.run_id, frozenset(args.cavs), key)
+    # a compressed wire: the ego's own CAV also hands it its map uncompressed ("own"), which it fuses as its own
+    own_decoder = None if compressor is None else EgoDecoder({"features": ego_wire_spec(sc, c, f, 1)["features"]},
+                                                             args.run_id, frozenset({me}), key)
 
     side = ["vis", "scan"] if sc.output.rerun else ["vis"]
     box = Mailbox({kind: decoder.max_bytes(kind) for kind in kinds} | {"vis": MAX_VIS_BYTES,
-                                                                       "scan": max_scan_bytes(sc)})
-    for kind in [*kinds, *side]:
+                                                                       "scan": max_scan_bytes(sc)}
+                  | ({"own": own_decoder.max_bytes("features")} if own_decoder is not None else {}))
+    for kind in [*kinds, *side, *(["own"] if own_decoder is not None else [])]:
         bus.subscribe(kind, lambda sender, data, kind=kind: box.put(kind, sender, data))
     bus.subscribe("world", lambda sender, data: put_world(box, data))
     bus.subscribe("done", lambda sender, data: set_done(box))
@@ -161,6 +165,8 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
             if not realtime:
                 with timer.stage("wait"):
                     wait_messages(box, bus, k, present, [*kinds, *side], lost)
+                    if own_decoder is not None and me in present:
+                        wait_messages(box, bus, k, [me], ["own"], lost)
             else:  # lockstep marks a CAV lost at the first frame whose messages it never sent (above);
                 # the driver and CAVs may be frames ahead, so a CAV gone by now may have sent frame k
                 for cav in present:
@@ -169,10 +175,12 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
             for cav in lost:
                 stats.record_lost_agent(cav)
             with timer.stage("comm"):
-                inp, visible, scans = collect(box, k, world, me, kinds, inboxes, ego_poses, decoder, args)
+                inp, visible, scans = collect(box, k, world, me, kinds, inboxes, ego_poses, decoder, args, own_decoder)
                 events = {kind: ib.take_events() for kind, ib in inboxes.items()}
                 links = events["features"]  # the message every method fuses: what the links show
                 inp.features = {s: decompress(compressor, v) for s, v in inp.features.items()}
+                if inp.own is not None and me in inp.features:  # its own map never went on the air
+                    inp.features[me] = decompress(None, inp.own)  # float16 -> float32 [C, F, F]
             if extrapolations:
                 with timer.stage("compensation"):
                     inp.previous_features = {s: (decompress(compressor, old), rel, gap)

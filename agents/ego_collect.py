@@ -24,10 +24,11 @@ from v2vsim.world.state import WorldState
 
 
 def collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str], inboxes: dict[str, Inbox],
-             ego_poses: dict[int, Pose], decoder: EgoDecoder,
-             args: AgentArgs) -> tuple[FusionInputs, set[str], dict[str, Scan]]:
+             ego_poses: dict[int, Pose], decoder: EgoDecoder, args: AgentArgs,
+             own_decoder: EgoDecoder | None = None) -> tuple[FusionInputs, set[str], dict[str, Scan]]:
     """Decode frame k's messages, pass them through the channel, and gather what is fusable now;
-    also the ids the CAVs saw (visible-vehicle ground truth) and their scans (for the recording)."""
+    also the ids the CAVs saw (visible-vehicle ground truth) and their scans (for the recording). With
+    `own_decoder` (a compressed wire) the ego's uncompressed map from its own CAV goes into FusionInputs.own."""
     realtime = args.scenario.transport.clock == "realtime"
     now = world.time
     with box.cond:
@@ -107,6 +108,11 @@ def collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str], 
                 if compensate and s != me:
                     inp.outputs[s] = _moved_outputs(inp.outputs[s], msg, (x, y, z, yaw), inboxes[kind].previous(s),
                                                     now - msg.capture_time, args.scenario.bev.size_m)
+    if own_decoder is not None:
+        for sender, data in raw["own"]:
+            msg = own_decoder.receive("features", data, sender, ())  # its own process: a failure is not V2V's
+            if msg is not None and msg.sender_id == me and msg.frame == k:
+                inp.own = msg.payload
     return inp, visible, scans
 
 

@@ -18,7 +18,7 @@ from v2vsim.recording.scan import scan_frame
 
 HANG_TIMEOUT_S = 60.0  # a live CAV that sends nothing for this long is treated as lost
 # Side channels between our own processes, not V2V messages: not channel-modelled, not counted.
-SIDE_KINDS = ("vis", "scan")
+SIDE_KINDS = ("vis", "scan", "own")  # "own": the ego's uncompressed map from its own CAV process
 
 
 class Mailbox:

@@ -26,6 +26,9 @@ class FusionInputs:
     # come from different frames (a late kind is older): each method warps with the poses of the kind it fuses.
     poses_by_kind: dict[str, np.ndarray] = field(default_factory=dict)
     features: dict[str, np.ndarray] = field(default_factory=dict)  # sender -> [C, F, F]
+    # The ego's own map as its encoder made it (float16 [C, F, F]) when the wire compresses feature messages: the
+    # ego never radios its map to itself, so it fuses this instead of its own compressed message.
+    own: np.ndarray | None = None
     points: dict[str, np.ndarray] = field(default_factory=dict)  # sender -> [P, 4] body frame
     outputs: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # sender -> (maps, boxes)
     # Learned latency compensation (comm.compensation, v2vsim.perception.extrapolate): per neighbour whose

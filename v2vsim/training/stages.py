@@ -80,7 +80,7 @@ SPECS[EXTRAPOLATE] = StageSpec(EXTRAPOLATE, ("cobevt",), "cache", "coop", 3, 120
 # A channel compressor (models.compression) between the frozen encoder's cached features and the frozen `single`
 # heads, one CAV's own map: the task loss through the heads plus the features' reconstruction error (relative
 # to their mean square), so that the decompressed map serves every fusion method, not only these heads.
-SPECS[COMPRESS] = StageSpec(COMPRESS, (), "cache", "self", 1, 1200, 4, 2e-3, 1, (0,), recon_weight=1.0)
+SPECS[COMPRESS] = StageSpec(COMPRESS, (), "cache", "self", 3, 1200, 4, 5e-3, 1, (0,), recon_weight=4.0)
 
 
 @dataclass(frozen=True)

@@ -91,8 +91,9 @@ def _features(cache: FeatureCache, batch: dict, channels: int, cells: int) -> Te
 
 def forward(model: nn.Module, spec: StageSpec, batch: dict, cache: FeatureCache | None, dev: torch.device,
             wire: ChannelCompressor | None = None) -> dict[str, Tensor]:
-    """The stage's outputs on a batch; cached features pass through the frozen `wire` compressor (the zoo's
-    wire ratio) as the ego receives them, or for the `compress` stage through the compressor it trains."""
+    """The stage's outputs on a batch; the neighbours' cached features pass through the frozen `wire` compressor
+    (the zoo's wire ratio) as the ego receives them (its own map is its own: never compressed), or for the
+    `compress` stage one CAV's map through the compressor it trains."""
     rel, valid = batch["rel_poses"].to(dev), batch["valid"].to(dev)
     if spec.inputs == "cache":
         enc = model.encoder
@@ -102,9 +103,9 @@ def forward(model: nn.Module, spec: StageSpec, batch: dict, cache: FeatureCache 
             out = model.heads(decoded)
             ms = feats[:, 0].pow(2).mean().clamp(min=1e-6)
             return {"fused": decoded, **out, "recon": (decoded - feats[:, 0]).pow(2).mean() / ms}
-        if wire is not None:
+        if wire is not None:  # the neighbours' maps came over the air; the ego's own (slot 0) did not
             with torch.no_grad():
-                feats = wire.over_the_wire(feats)
+                feats = torch.cat([feats[:, :1], wire.over_the_wire(feats[:, 1:])], dim=1)
         if spec.name == EXTRAPOLATE:
             feats = extrapolate_batch(model.extrapolation, feats, batch, cache, model.bev_size_m, wire)
         fused = model.fuse(feats, rel, valid)
@@ -164,7 +165,8 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
     cache = FeatureCache(args.work / "cache") if spec.inputs == "cache" else None
     if cache is not None:
         check_cache_grid(cache, args)
-    wire = wire_compressor(args) if spec.inputs == "cache" and spec.name != COMPRESS else None
+    # the neighbours' maps come through the zoo's wire compressor (a stage without neighbours, `none`, reads none)
+    wire = wire_compressor(args) if spec.inputs == "cache" and spec.name != COMPRESS and spec.max_agents > 1 else None
     if wire is not None:
         print(f"[{spec.name}] features through the zoo's wire compressor, ratio {wire.ratio}", file=log, flush=True)
     raw = spec.inputs == "points" or spec.distill_weight > 0  # the encoder (or the teacher) runs on sensor data

@@ -27,23 +27,25 @@ def validate(spec: StageSpec, model: nn.Module, single: nn.Module, ds: Cooperati
     model.cpu().eval()
     single.cpu().eval()
     models = {m: model for m in spec.methods} if spec.methods else {"none": model, "late": model}
-    if spec.name == COMPRESS:
+    if spec.name == COMPRESS:  # `none` on the ego's own map sent through this ratio's compressor: what it costs
         models, wire = {"none": model}, model.compressor
     wire = None if wire is None else wire.cpu().eval()
     idx = np.linspace(0, len(ds) - 1, min(n, len(ds))).round().astype(int)
     try:
         if spec.name == EXTRAPOLATE:
             return evaluate_extrapolation(model, spec.methods[0], ds, [int(i) for i in idx], cache, wire)
-        return evaluate_samples(models, single, ds, [int(i) for i in idx], cache, wire)
+        return evaluate_samples(models, single, ds, [int(i) for i in idx], cache, wire,
+                                own_compressed=spec.name == COMPRESS)
     finally:
         model.to(dev)
 
 
 @torch.no_grad()
 def sample_fusion_inputs(s: dict, single: nn.Module, cache: FeatureCache | None = None, late: bool = True,
-                         wire: ChannelCompressor | None = None) -> FusionInputs:
+                         wire: ChannelCompressor | None = None, own_compressed: bool = False) -> FusionInputs:
     """A dataset sample as the ego's FusionInputs, as they arrive off the wire: features float16 (from
-    `single`'s encoder, or the cache; through the `wire` compressor where the zoo has one), late outputs
+    `single`'s encoder, or the cache; the neighbours' through the `wire` compressor where the zoo has one, the
+    ego's own too only with `own_compressed`: the `compress` stage's scoring), late outputs
     computed by each CAV from its float32 features with `single`'s heads and shipped as float16 maps +
     float32 boxes, points float32."""
     inp = FusionInputs(senders=list(s["agents"]), rel_poses=s["rel_poses"].numpy())
@@ -55,7 +57,7 @@ def sample_fusion_inputs(s: dict, single: nn.Module, cache: FeatureCache | None 
                                    s["extrinsics"][j][None])[0].float().numpy()
         else:
             feats = encode_points(single.encoder, s["points"][j].numpy())
-        if wire is None:
+        if wire is None or (j == 0 and not own_compressed):  # slot 0: the ego's own map, never on the air
             inp.features[c] = feats.astype(np.float16).astype(np.float32)
         else:
             inp.features[c] = wire.over_the_wire(torch.from_numpy(feats.astype(np.float32))).numpy()
@@ -69,13 +71,14 @@ def sample_fusion_inputs(s: dict, single: nn.Module, cache: FeatureCache | None 
 
 @torch.no_grad()
 def evaluate_samples(models: dict[str, nn.Module], single: nn.Module, ds: CooperativeDataset, idx: list[int],
-                     cache: FeatureCache | None = None, wire: ChannelCompressor | None = None) -> dict[str, dict]:
+                     cache: FeatureCache | None = None, wire: ChannelCompressor | None = None,
+                     own_compressed: bool = False) -> dict[str, dict]:
     """metrics.json-style scores of `models` on dataset samples, through the ego's own scoring
     (v2vsim.evaluation.fuse_and_score.fuse_and_score) on `sample_fusion_inputs`."""
     scores = {m: MethodScore(boxes=ApAccumulator()) for m in models}
     for i in idx:
         s = ds[i]
-        inp = sample_fusion_inputs(s, single, cache, late="late" in models, wire=wire)
+        inp = sample_fusion_inputs(s, single, cache, late="late" in models, wire=wire, own_compressed=own_compressed)
         gt = {"dynamic": s["dynamic"].numpy(), "visible": s["vehicle"].numpy(), "road": s["road"].numpy(),
               "lane": s["lane"].numpy()}
         fuse_and_score(models, inp, gt["road"].shape[0], gt, s["boxes"].numpy(), scores)

@@ -57,9 +57,10 @@ def test_the_compress_stage_registers_a_compressor_per_ratio_and_the_wire(compre
     state = torch.load(tmp / "zoo" / "pointpillars_tiny" / "compressor_r16.pt", weights_only=True)["state_dict"]
     assert state["compressor.encoder.weight"].shape == (4, 64, 1, 1)  # 64 channels -> 64 / 16
     assert not any(k.startswith(("fusion.", "heads.", "encoder.")) for k in state)
-    # the stages after it read the cache through the wire's compressor (ratio 8), and say so
+    # the fusion stages after it read the neighbours' cached maps through the wire's compressor (ratio 8) and say
+    # so; `none` (the ego's own map, never on the air) does not
     assert "[cobevt] features through the zoo's wire compressor, ratio 8" in log
-    assert "[none] features through the zoo's wire compressor, ratio 8" in log
+    assert "[none] features through" not in log
 
 
 def test_a_run_loads_the_zoo_grid_and_its_trained_compressor(compressed_zoo) -> None:
@@ -148,3 +149,52 @@ def test_a_compressed_message_round_trips_through_the_codec_and_the_wire_spec(co
     assert np.allclose(restored, want, atol=1e-5)
     with pytest.raises(RejectedMessage):
         decode(data, spec=ego_wire_spec(sc, 64, 64, 16))
+
+
+def test_only_the_neighbours_maps_come_through_the_wire(compressed_zoo, tiny_dataset) -> None:
+    """The ego's own map never goes on the air: validation (like the training forward) compresses the
+    neighbours' cached maps and leaves the ego's float16 map as it is."""
+    from v2vsim.data.torch_dataset import CooperativeDataset
+    from v2vsim.training.cache import FeatureCache
+    from v2vsim.training.stages import SPECS, build_stage_model, wire_compressor
+    from v2vsim.training.validate import sample_fusion_inputs
+
+    tmp, _ = compressed_zoo
+    args = _args(tiny_dataset, tmp, "cobevt")
+    cache, wire = FeatureCache(tmp / "work" / "cache"), wire_compressor(args)
+    assert wire is not None and wire.ratio == 8
+    ds = CooperativeDataset(tiny_dataset, "val", max_agents=5, egos="first")
+    s = next(ds[i] for i in range(len(ds)) if len(ds[i]["agents"]) > 1)
+    single = build_stage_model(args, SPECS["none"])
+    inp = sample_fusion_inputs(s, single, cache, late=False, wire=wire)
+    ego, other = s["agents"][0], s["agents"][1]
+    raw = {c: cache.get(s["key"].run, k, c).astype(np.float32)
+           for c, k in zip(s["agents"], s["agent_frames"], strict=True)}
+    assert np.array_equal(inp.features[ego], raw[ego])  # float16 in the cache already
+    assert not np.allclose(inp.features[other], raw[other])
+
+
+
+def test_a_live_run_on_the_compressed_wire_fuses_the_ego_s_own_map_uncompressed(compressed_zoo, tmp_path) -> None:
+    """A real run (SUMO, zenoh, one process per CAV) on the zoo's compressed wire: the feature messages carry C / 8
+    channels, and `none` -- the ego's own map, never on the air -- scores exactly what it scores with the wire
+    uncompressed (comm.channel_compression: 1)."""
+    import json
+    import subprocess
+    import sys
+
+    tmp, _ = compressed_zoo
+    out = {}
+    for name, ratio in (("wire8", "null"), ("wire1", "1")):
+        r = subprocess.run([sys.executable, "-m", "v2vsim.cli", "run", "scenarios/intersection.yaml", "--frames", "4",
+                            "--out", str(tmp_path / name), "--set", f"perception.weights={tmp / 'zoo'}",
+                            "--set", "perception.methods=[none,cobevt]", "--set", "output.rerun=false",
+                            "--set", f"comm.channel_compression={ratio}"],
+                           capture_output=True, text=True, timeout=600)
+        assert r.returncode == 0, r.stderr[-2000:]
+        out[name] = json.loads((tmp_path / name / "metrics.json").read_text())
+    assert out["wire8"]["grid"] == {"cells": 64, "cell_m": 1.562, "channels": 64, "wire_ratio": 8, "wire_channels": 8}
+    assert out["wire1"]["grid"]["wire_ratio"] == 1
+    assert out["wire8"]["comm"]["bytes_per_message"] < out["wire1"]["comm"]["bytes_per_message"] / 6
+    none8, none1 = out["wire8"]["methods"]["none"], out["wire1"]["methods"]["none"]
+    assert none8["iou_vehicle_counts"] == none1["iou_vehicle_counts"]
