@@ -8,7 +8,8 @@ inflating message from its header alone (v2vsim.comm.codec "KindSpec"):
             the ego's decoder is built for it)
   points    (<= lidar.channels * lidar.points_per_channel, 4) float32: one body-frame sweep
             (v2vsim.perception.encode.body_frame_points keeps at most one return per ray)
-  outputs   (3, 8F, 8F) float16 maps (the decoder upsamples the grid 8x), and exactly one
+  outputs   (3, S, S) float16 maps at the heads' segmentation grid S (the preset's seg_cells, 256, whatever
+            the fusion grid: the decoder upsamples a 32 x 32 map 8x, a 64 x 64 one 4x), and exactly one
             extra, "boxes" (<= MAX_BOXES, 6): x, y, l, w, yaw, score after NMS
   sparse    (N, C / r) float16, N <= F * F: the values of N cells of the features map (ratio r as
             for features), and exactly one extra, "cells" (N,) uint16/uint32: their row-major
@@ -25,6 +26,7 @@ from collections.abc import Collection, Iterable, Mapping
 from dataclasses import dataclass
 
 from models.heads import MAX_DETECTIONS
+from models.presets import get_preset
 from v2vsim.comm.codec import CELLS, AtMost, KindSpec, Message, RejectedMessage, decode
 from v2vsim.comm.stats import CommStats
 from v2vsim.config import Scenario
@@ -33,7 +35,6 @@ MAX_BOXES = MAX_DETECTIONS
 """Late fusion ships at most this many boxes per CAV: models.heads.decode_detections' top_k."""
 
 BOX_FIELDS = 6  # x, y, l, w, yaw, score (v2vsim.perception.encode.late_outputs)
-DECODER_UPSAMPLING = 8  # late outputs are 8x the encoder grid
 
 
 KEY_KINDS = {"features": ("features", "sparse")}
@@ -52,7 +53,7 @@ def ego_wire_spec(sc: Scenario, encoder_out_channels: int, encoder_out_cells: in
     run's channel compression (v2vsim.perception.build.wire_ratio; default comm.channel_compression or 1)."""
     c, f = encoder_out_channels, encoder_out_cells
     r = ratio if ratio is not None else (sc.comm.channel_compression or 1)
-    s = DECODER_UPSAMPLING * f
+    s = get_preset(sc.perception.preset).seg_cells  # the late outputs' maps: the heads' grid, not 8 F
     sweep = sc.sensors.lidar.channels * sc.sensors.lidar.points_per_channel
     return {
         "features": KindSpec((c // r, f, f), channel_compression=r),

@@ -47,6 +47,7 @@ RUN = "fuzz-run"
 SENDERS = frozenset({"cav0", "cav1", "cav2"})
 KEY = b"fuzz key 0123456789"
 C, F, RATIO = 16, 8, 4  # encoder channels and cells, comm.channel_compression: features (4, 8, 8)
+S = 256  # late outputs' maps: the heads' segmentation grid (the preset's seg_cells), whatever F
 KINDS = list(KIND_CODES)
 FIXED = struct.Struct("<4sBBBBHHIddddd")
 FRAME_AND_POSE = range(12, FIXED.size)  # frame, capture time, pose: any value of these is legitimate
@@ -88,7 +89,7 @@ def _msg(kind: str, rng: np.random.Generator, *, sender: str = "cav1", compressi
         return Message(kind="sparse", payload=fill((k, C // RATIO)), extras={CELLS: cells},
                        channel_compression=RATIO, **{**stamp, **kw})
     boxes = fill((3 if n is None else n, 6))
-    return Message(kind="outputs", payload=fill((3, 8 * F, 8 * F)), extras={"boxes": boxes}, **{**stamp, **kw})
+    return Message(kind="outputs", payload=fill((3, S, S)), extras={"boxes": boxes}, **{**stamp, **kw})
 
 
 def _sign(unsigned: bytes, key: bytes = KEY) -> bytes:
@@ -343,7 +344,7 @@ def misrouted(rng: np.random.Generator) -> Iterator[Case]:
         yield Case("one sweep and more", "points", "cav1", encode(pts, key), keyed)
         other = Message(**{**_msg("points", rng).__dict__, "payload": np.zeros((5, 3 + 2 * (i % 2)), np.float32)})
         yield Case("points of 3 or 5 fields", "points", "cav1", encode(other, key), keyed)
-        maps = Message(**{**_msg("outputs", rng).__dict__, "payload": np.zeros((3, 8 * F, 8 * F + 1))})
+        maps = Message(**{**_msg("outputs", rng).__dict__, "payload": np.zeros((3, S, S + 1))})
         yield Case("outputs of another grid", "outputs", "cav1", encode(maps, key), keyed)
         sparse = Message(**{**_msg("sparse", rng).__dict__, "channel_compression": [1, 2, 8, 64][i % 4]})
         yield Case("sparse of another channel compression", "sparse", "cav1", encode(sparse, key), keyed)

@@ -188,7 +188,7 @@ def test_a_live_run_on_the_compressed_wire_fuses_the_ego_s_own_map_uncompressed(
     for name, ratio in (("wire8", "null"), ("wire1", "1")):
         r = subprocess.run([sys.executable, "-m", "v2vsim.cli", "run", "scenarios/intersection.yaml", "--frames", "4",
                             "--out", str(tmp_path / name), "--set", f"perception.weights={tmp / 'zoo'}",
-                            "--set", "perception.methods=[none,cobevt]", "--set", "output.rerun=false",
+                            "--set", "perception.methods=[none,late,cobevt]", "--set", "output.rerun=false",
                             "--set", f"comm.channel_compression={ratio}"],
                            capture_output=True, text=True, timeout=600)
         assert r.returncode == 0, r.stderr[-2000:]
@@ -196,5 +196,8 @@ def test_a_live_run_on_the_compressed_wire_fuses_the_ego_s_own_map_uncompressed(
     assert out["wire8"]["grid"] == {"cells": 64, "cell_m": 1.562, "channels": 64, "wire_ratio": 8, "wire_channels": 8}
     assert out["wire1"]["grid"]["wire_ratio"] == 1
     assert out["wire8"]["comm"]["bytes_per_message"] < out["wire1"]["comm"]["bytes_per_message"] / 6
+    # every message accepted, late fusion's 256 x 256 outputs too (the heads' grid, not 8 x the fusion grid)
+    assert out["wire8"]["comm"]["rejected"] == 0 and out["wire8"]["comm"]["by_kind"]["outputs"]["rejected"] == 0
+    assert out["wire8"]["methods"]["late"]["iou_vehicle"] is not None
     none8, none1 = out["wire8"]["methods"]["none"], out["wire1"]["methods"]["none"]
     assert none8["iou_vehicle_counts"] == none1["iou_vehicle_counts"]
