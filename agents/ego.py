@@ -92,8 +92,8 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
     static = static_from_bytes(bus.fetch("static", "main", START_TIMEOUT_S))
     assets = build_map_assets(static)
     c, f = encoder.out_channels, encoder.out_cells
-    compressor = build_compressor(sc, c)
-    decoder = EgoDecoder(ego_wire_spec(sc, c, f, wire_ratio(sc)), args.run_id, frozenset(args.cavs), key)
+    compressor, ratio = build_compressor(sc, c), wire_ratio(sc)
+    decoder = EgoDecoder(ego_wire_spec(sc, c, f, ratio), args.run_id, frozenset(args.cavs), key)
     # a compressed wire: the ego's own CAV also hands it its map uncompressed ("own"), which it fuses as its own
     own_decoder = None if compressor is None else EgoDecoder({"features": ego_wire_spec(sc, c, f, 1)["features"]},
                                                              args.run_id, frozenset({me}), key)
@@ -121,7 +121,7 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
                          untrained=all(v is None for v in checkpoints.values()), checkpoints=checkpoints,
                          skipped=[m for m in methods if m not in models],
                          compensation=compensation_schemes(sc, list(models), extrapolations),
-                         grid_cells=f, channels=c, wire_ratio=wire_ratio(sc))
+                         grid_cells=f, channels=c, wire_ratio=ratio)
     timer = StageTimer()
     after = AfterFusion(scores, recorder, timer)
     bus.ready()
@@ -178,9 +178,9 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
                 inp, visible, scans = collect(box, k, world, me, kinds, inboxes, ego_poses, decoder, args, own_decoder)
                 events = {kind: ib.take_events() for kind, ib in inboxes.items()}
                 links = events["features"]  # the message every method fuses: what the links show
-                inp.features = {s: decompress(compressor, v) for s, v in inp.features.items()}
-                if inp.own is not None and me in inp.features:  # its own map never went on the air
-                    inp.features[me] = decompress(None, inp.own)  # float16 -> float32 [C, F, F]
+                # float32 [C, F, F] each; its own map never went on the air: the uncompressed one where it came
+                inp.features = {s: decompress(None, inp.own) if s == me and inp.own is not None
+                                else decompress(compressor, v) for s, v in inp.features.items()}
             if extrapolations:
                 with timer.stage("compensation"):
                     inp.previous_features = {s: (decompress(compressor, old), rel, gap)

@@ -339,10 +339,9 @@ class CooperativePerceptionEnv(ParallelEnv):
         for n, s in enumerate(senders):
             msg = fusable[s]
             rel[n] = relative_pose(me, Pose(*inbox.sender_pose(msg)))
-            inp.features[s] = decompress(self.compressor, dense_payload(msg, self.wire_shape))
-        # its own map never went on the air: it fuses it as its encoder made it (float16, like any payload)
-        if j in inp.features:
-            inp.features[j] = self._sensed[j].features.astype(np.float16).astype(np.float32)
+            # its own map never went on the air: it fuses it as its encoder made it (float16, like any payload)
+            inp.features[s] = (decompress(None, self._sensed[j].features.astype(np.float16)) if s == j
+                               else decompress(self.compressor, dense_payload(msg, self.wire_shape)))
         return inp
 
     def _predict(self, method: str, inp: FusionInputs) -> Prediction:

@@ -203,12 +203,12 @@ def decompress(comp: ChannelCompressor | None, payload: np.ndarray) -> np.ndarra
 
 def build_method_models(sc: Scenario, encoder: nn.Module, methods: tuple[str, ...]) -> dict[str, nn.Module]:
     """One CooperativePerception per method, all sharing `encoder` (every method fuses the same messages)."""
-    states = _states(sc, methods)
+    states, cells = _states(sc, methods), fusion_cells(sc)
     out = {}
     for m in methods:
         _seed(sc, f"method:{m}")
         model = build_cooperative(sc.perception.encoder, m, sc.perception.preset, bev_size_m=sc.bev.size_m,
-                                  cells=fusion_cells(sc))
+                                  cells=cells)
         state = states[m]
         if m == "early":  # early fusion's encoder runs at the ego on merged clouds: its own weights
             _load(model.encoder, state, "encoder.", sc, m)
