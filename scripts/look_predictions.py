@@ -3,7 +3,8 @@
     python scripts/look_predictions.py DATASET SPLIT OUT.png [--methods none,late,early,cobevt] [--samples 3]
         [--weights auto|ZOO_DIR] [--encoder pointpillars|sinbevt|lara]
 
-Rows: samples (ego = first CAV, frames with the most neighbours in range); columns: the points of
+Rows: samples (ego = first CAV, frames with the most neighbours in range; the neighbours' features through the
+zoo's wire compressor, as in a run); columns: the points of
 every agent in the ego frame (camera encoders: the ego's front camera), GT (visible vehicles white,
 unseen grey, road dark; camera: lane yellow), then per method
 - LiDAR: the vehicle probability (colour) with the error outline: TP green, FP red, FN blue;
@@ -26,7 +27,7 @@ from models.fusion.early import merge_points_to_ego  # noqa: E402
 from models.registry import MODALITY  # noqa: E402
 from v2vsim.config import load_scenario  # noqa: E402
 from v2vsim.data.torch_dataset import CooperativeDataset  # noqa: E402
-from v2vsim.perception.build import build_agent_encoder, build_method_models  # noqa: E402
+from v2vsim.perception.build import build_agent_encoder, build_compressor, build_method_models  # noqa: E402
 from v2vsim.perception.fuse import predict  # noqa: E402
 from v2vsim.training.validate import sample_fusion_inputs  # noqa: E402
 
@@ -50,6 +51,7 @@ def main() -> None:
     enc = build_agent_encoder(sc)
     models = build_method_models(sc, enc, methods)
     single = build_method_models(sc, enc, ("late",))["late"]  # what each CAV runs for its late outputs
+    wire = build_compressor(sc, enc.out_channels)  # the neighbours' maps as the ego receives them (None: uncompressed)
     ds = CooperativeDataset(a.data, a.split, max_agents=5, egos="first", with_points=not camera, with_images=camera)
     counts = [len(ds[i]["agents"]) for i in range(0, len(ds), 5)]
     order = np.argsort(-np.array(counts), kind="stable")[: a.samples] * 5
@@ -57,7 +59,7 @@ def main() -> None:
     axes = np.atleast_2d(axes)
     for r, i in enumerate(order):
         s = ds[int(i)]
-        inp = sample_fusion_inputs(s, single)
+        inp = sample_fusion_inputs(s, single, wire=wire)
         if camera:
             axes[r, 0].imshow(s["images"][0][0].permute(1, 2, 0).numpy())  # the ego's first (front) camera
         else:

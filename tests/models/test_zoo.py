@@ -37,6 +37,10 @@ def test_every_shipped_checkpoint_matches_its_sha256_and_loads(encoder: str) -> 
         assert zoo.sha256(path) == info["sha256"], name
         assert zoo.load_checkpoint(path, entry), name
         assert info["command"].startswith("v2vsim train") and info["validation"]
+    if encoder == "pointpillars":  # the 64 x 64 LiDAR zoo with the compressors the docs list (8 on the wire)
+        assert entry["cells"] == 64 and entry["wire_ratio"] == 8
+        assert {"8", "16", "32", "64"} <= set(entry["compressors"])
+        assert all(entry["compressors"][r] in entry["files"] for r in entry["compressors"])
     sc = load_scenario(scenario, overrides)
     assert sc.perception.weights == "auto"
     models = build_method_models(sc, build_agent_encoder(sc), tuple(methods))
