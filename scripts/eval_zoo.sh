@@ -4,11 +4,11 @@
 # limit), 200 frames, all methods, with `v2vsim sweep` so that every method's difference to `none` (and CoBEVT's
 # to every method) has its paired 95 % bootstrap interval over the seeds (OUT/<scenario>/sweep.md). Resumable.
 # Then prints the table of docs/results.md (scripts/zoo_table.py over every run).
-#   scripts/eval_zoo.sh [OUT_DIR] [SEEDS]      (defaults: runs/eval, seeds 0-3; SEEDS as A-B or A)
+#   scripts/eval_zoo.sh [OUT_DIR] [SEEDS]      (defaults: runs/eval, seeds 0-7; SEEDS as A-B or A)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${1:-runs/eval}
-SEEDS=${2:-0-3}
+SEEDS=${2:-0-7}
 V=${V2VSIM:-v2vsim}
 for sc in intersection t_junction; do
   $V sweep scenarios/$sc.yaml --grid comm.bandwidth_mbps=27,null --seeds "$SEEDS" --frames 200 \
