@@ -104,6 +104,21 @@ def compressor_file(entry: dict, ratio: int, root: Path, encoder: str, preset: s
     return None if name is None else root / zoo_name(encoder, preset) / name
 
 
+def wire_method_file(entry: dict, method: str, ratio: int, root: Path, encoder: str, preset: str) -> Path | None:
+    """The checkpoint of intermediate `method` trained on the ratio-`ratio` wire (manifest "wire_methods"; the
+    zoo's own wire ratio is its "methods" entry), None if the zoo has none."""
+    if ratio == wire_ratio(entry):
+        return method_file(entry, method, root, encoder, preset)
+    name = ((entry.get("wire_methods") or {}).get(str(ratio)) or {}).get(method)
+    return None if name is None else root / zoo_name(encoder, preset) / name
+
+
+def wire_ratios_of(entry: dict, method: str) -> list[int]:
+    """The wire ratios `method` has a checkpoint for: the zoo's wire ratio and those of "wire_methods"."""
+    extra = [int(r) for r, methods in (entry.get("wire_methods") or {}).items() if method in methods]
+    return sorted({wire_ratio(entry), *extra}) if method in entry["methods"] else sorted(extra)
+
+
 def wire_ratio(entry: dict | None) -> int:
     """The channel compression ratio of this zoo's default wire message (1: uncompressed)."""
     return 1 if entry is None else int(entry.get("wire_ratio", 1))
@@ -117,7 +132,10 @@ def extrapolation_file(entry: dict, method: str, root: Path, encoder: str, prese
 
 def rebuild_command(path: Path, entry: dict) -> str:
     """How to rebuild the checkpoint `path` of a zoo entry: the whole zoo, or its stage alone."""
-    stage = (entry["files"].get(path.name) or {}).get("stage")
+    info = entry["files"].get(path.name) or {}
+    stage = info.get("stage")
+    if stage and info.get("wire_ratio") is not None:  # a fusion method trained on another wire than the zoo's
+        stage = f"{stage} --wire-ratio {info['wire_ratio']}"
     encoder = path.parent.name.rsplit("_", 1)[0]  # the zoo's folder is <encoder>_<preset>
     whole = REBUILD_ZOO.get(encoder, REBUILD)
     flag = "" if encoder == "pointpillars" else f" --encoder {encoder}"
@@ -168,12 +186,13 @@ def set_wire_ratio(encoder: str, preset: str, ratio: int, root: Path = WEIGHTS_D
 
 def register(path: Path, *, encoder: str, preset: str, methods: list[str], info: dict,
              root: Path = WEIGHTS_DIR, provides_encoder: bool = False, extrapolates: tuple[str, ...] = (),
-             cells: int | None = None, compresses: int | None = None) -> None:
+             cells: int | None = None, compresses: int | None = None, trained_wire: int | None = None) -> None:
     """Add (or replace) a checkpoint file in the manifest, with its sha256 and size; `provides_encoder`:
     this file holds the encoder every CAV runs (the single-agent stage); `extrapolates`: methods whose
     latency-compensation add-on this file is (it then serves no method itself: pass methods=[]);
     `cells`: the LiDAR grid it was trained at (ZooError if the entry holds another grid's files);
-    `compresses`: the ratio whose channel compressor this file is."""
+    `compresses`: the ratio whose channel compressor this file is; `trained_wire`: the file holds `methods`
+    trained on the wire of this ratio rather than the zoo's (listed under "wire_methods", not "methods")."""
     doc = read_manifest(root)
     entry = doc["zoos"].setdefault(zoo_name(encoder, preset), {"encoder": None, "methods": {}, "files": {}})
     if cells is not None:
@@ -188,7 +207,10 @@ def register(path: Path, *, encoder: str, preset: str, methods: list[str], info:
         entry["encoder"] = path.name
     entry["files"][path.name] = {"sha256": sha256(path), "bytes": path.stat().st_size, **info}
     for m in methods:
-        entry["methods"][m] = path.name
+        if trained_wire is None:
+            entry["methods"][m] = path.name
+        else:
+            entry.setdefault("wire_methods", {}).setdefault(str(trained_wire), {})[m] = path.name
     for m in extrapolates:
         entry.setdefault("extrapolation", {})[m] = path.name
     write_manifest(doc, root)

@@ -111,7 +111,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
             print(f"v2vsim train: --ratios {args.ratios!r}: every ratio must be >= 2", file=sys.stderr)
             return 2
     targs = TrainArgs(data=Path(args.data), stage=args.stage, out=Path(args.out), work=Path(args.work),
-                      encoder=args.encoder, preset=args.preset, cells=args.cells, bf16=args.bf16, **extra,
+                      encoder=args.encoder, preset=args.preset, cells=args.cells, bf16=args.bf16,
+                      wire_ratio=args.wire_ratio, **extra,
                       device=args.device, threads=args.threads, seed=args.seed, resume=args.resume,
                       val_every=args.val_every, workers=args.workers,
                       overrides=tuple(overrides.items()), command=command_line(sys.argv[2:]))
@@ -274,6 +275,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="`compress` stage: the channel compression ratios to train (default 8,16,32,64)")
     p.add_argument("--bf16", action="store_true",
                    help="bfloat16 autocast in the forward pass (a CPU with AMX, or CUDA); docs/training.md")
+    p.add_argument("--wire-ratio", type=int, default=None, metavar="R",
+                   help="an intermediate fusion stage: train it on the ratio-R wire instead of the zoo's (its own "
+                        "checkpoint <method>_r<R>.pt, loaded by runs with comm.channel_compression: R; 1: "
+                        "uncompressed); docs/training.md")
     p.set_defaults(func=_cmd_train)
 
     p = sub.add_parser("sweep", help="run a scenario over a grid of overrides x seeds: sweep.csv/json/md, plots "

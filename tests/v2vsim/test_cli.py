@@ -40,6 +40,9 @@ def _one_line_exit_2(argv: list[str], capsys: pytest.CaptureFixture[str], *expec
     # random one behind trained models
     (["--set", "comm.channel_compression=2"], ["comm.channel_compression: 2", "no trained compressor for ratio 2",
                                                "--stage compress --ratios 2"]),
+    # a ratio whose compressor is trained but whose fusion models were trained on another wire: refused too
+    (["--set", "comm.channel_compression=16"], ["comm.channel_compression: 16", "trained on the ratio-8 wire",
+                                                "--wire-ratio 16"]),
     (["--set", "comm.fusion_deadline_ms=100"], ["comm.fusion_deadline_ms", "less than one frame"]),
 ])
 def test_run_refuses_bad_arguments(args: list[str], expect: list[str], tmp_path: Path,

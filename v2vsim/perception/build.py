@@ -20,7 +20,7 @@ from models import zoo
 from models.compression import ChannelCompressor
 from models.extrapolation import FeatureExtrapolation
 from models.presets import get_preset
-from models.registry import MODALITY, build_cooperative, build_encoder
+from models.registry import MODALITY, build_cooperative, build_encoder, is_intermediate
 from v2vsim.config import ConfigError, Scenario
 
 
@@ -53,12 +53,34 @@ def zoo_for(sc: Scenario) -> tuple[Path, dict] | None:
     return root, entry
 
 
+def method_file(sc: Scenario, root: Path, entry: dict, method: str) -> Path | None:
+    """The checkpoint `method` ("encoder": the CAVs' encoder) loads from the zoo (root, entry). An intermediate
+    method loads the one trained on the scenario's wire ratio: the zoo's own wire is its "methods" file, another
+    ratio (comm.channel_compression) needs a checkpoint trained on that wire ("wire_methods"). Where there is
+    none it is a ConfigError: a fusion model fed another wire's decoded features runs off the distribution it
+    was trained on, and its results would say nothing about the method."""
+    enc, preset = sc.perception.encoder, sc.perception.preset
+    if method == "encoder" or not is_intermediate(method):
+        return zoo.method_file(entry, method, root, enc, preset)
+    ratio = wire_ratio(sc)
+    path = zoo.wire_method_file(entry, method, ratio, root, enc, preset)
+    if path is None and method in entry["methods"]:
+        have = ", ".join(map(str, zoo.wire_ratios_of(entry, method)))
+        raise ConfigError(f"{sc.source}: comm.channel_compression: {ratio}: the {zoo.zoo_name(enc, preset)} zoo's "
+                          f"{method} was trained on the ratio-{zoo.wire_ratio(entry)} wire and has no checkpoint for "
+                          f"ratio {ratio} (ratios it has: {have}); fed another wire's features it would run off its "
+                          f"training distribution. Train one with: v2vsim train --data DATA --stage {method} "
+                          f"--wire-ratio {ratio} --out {root} --work WORK (docs/training.md), or leave {method} out "
+                          "of perception.methods")
+    return path
+
+
 def method_checkpoints(sc: Scenario, methods: tuple[str, ...]) -> dict[str, str | None]:
     """Checkpoint file each method loads (relative to the zoo root), None where weights are random."""
     z = zoo_for(sc)
     out: dict[str, str | None] = {}
     for m in methods:
-        f = None if z is None else zoo.method_file(z[1], m, z[0], sc.perception.encoder, sc.perception.preset)
+        f = None if z is None else method_file(sc, z[0], z[1], m)
         out[m] = None if f is None else str(f.relative_to(z[0]))
     return out
 
@@ -69,7 +91,7 @@ def _states(sc: Scenario, methods: tuple[str, ...]) -> dict[str, dict | None]:
     z = zoo_for(sc)
     if z is None:
         return dict.fromkeys(methods)
-    files = {m: zoo.method_file(z[1], m, z[0], sc.perception.encoder, sc.perception.preset) for m in methods}
+    files = {m: method_file(sc, z[0], z[1], m) for m in methods}
     loaded: dict[Path, dict] = {}
     try:
         for f in {f for f in files.values() if f is not None}:
@@ -96,7 +118,7 @@ def _load(module: nn.Module, state: dict | None, prefix: str, sc: Scenario, meth
         module.load_state_dict(sub)
     except RuntimeError as e:
         root, entry = zoo_for(sc)  # type: ignore[misc]  # a state was loaded, so there is a zoo
-        path = zoo.method_file(entry, method, root, sc.perception.encoder, sc.perception.preset)
+        path = method_file(sc, root, entry, method)
         reason = " ".join(str(e).split())
         raise ConfigError(f"{path}: the {method} checkpoint's {prefix.rstrip('.')} weights do not fit this "
                           f"version of the model ({reason[:300]}); rebuild it with: "
@@ -241,7 +263,7 @@ def build_extrapolation(sc: Scenario, method: str = "cobevt") -> FeatureExtrapol
         raise ConfigError(str(e)) from None
     rebuild = zoo.rebuild_command(path, entry)
     base = (entry["files"].get(path.name) or {}).get("extrapolates")
-    current = zoo.method_file(entry, method, root, enc, preset)
+    current = method_file(sc, root, entry, method)  # the one this run's wire ratio loads
     if base is not None and (current is None
                              or (entry["files"].get(current.name) or {}).get("sha256") != base["sha256"]):
         raise ConfigError(f"{path}: trained on top of {base['file']} (sha256 {base['sha256'][:12]}…), not on the "

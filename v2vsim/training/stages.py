@@ -56,6 +56,7 @@ class StageSpec:
     # Camera `single` stage: turn each sample's agent frame by U(-d, d) degrees (v2vsim.training.augment).
     yaw_jitter_deg: float = 0.0
     ratio: int = 1  # `compress` stage: the channel compression ratio it trains
+    wire_ratio: int | None = None  # a fusion stage trained on this wire instead of the zoo's (--wire-ratio)
     recon_weight: float = 0.0  # `compress` stage: weight of the feature reconstruction loss
 
 
@@ -102,6 +103,7 @@ class TrainArgs:
     cells: int | None = None  # LiDAR fusion grid (default: the --out zoo's, else the preset's)
     ratios: tuple[int, ...] = COMPRESS_RATIOS  # `compress` stage
     bf16: bool = False  # bfloat16 autocast in the forward pass (CPU with AMX, or CUDA)
+    wire_ratio: int | None = None  # fusion stages: read the neighbours through this ratio's wire (1: uncompressed)
 
 
 # ---- models per stage ----------------------------------------------------------------------------
@@ -133,13 +135,17 @@ def check_zoo_grid(args: TrainArgs) -> None:
 
 
 def wire_compressor(args: TrainArgs) -> ChannelCompressor | None:
-    """The --out zoo's compressor of its wire ratio (frozen), through which every stage after `compress` reads
-    the cached features, as the ego reads them off the wire; None when the zoo's wire is uncompressed."""
+    """The --out zoo's compressor of its wire ratio (or of --wire-ratio), frozen, through which every stage
+    after `compress` reads the neighbours' cached features, as the ego reads them off the wire; None when that
+    wire is uncompressed."""
     entry = zoo.zoo_entry(args.encoder, args.preset, args.out)
-    ratio = zoo.wire_ratio(entry)
+    ratio = args.wire_ratio or zoo.wire_ratio(entry)
     if ratio == 1:
         return None
-    path = zoo.compressor_file(entry, ratio, args.out, args.encoder, args.preset)
+    path = None if entry is None else zoo.compressor_file(entry, ratio, args.out, args.encoder, args.preset)
+    if path is None:
+        raise DatasetError(f"--wire-ratio {ratio}: the zoo at {args.out} has no ratio-{ratio} compressor; train it "
+                           f"first (`v2vsim train --stage compress --ratios {ratio} --out {args.out}`)")
     try:
         state = zoo.load_checkpoint(path, entry)
     except zoo.ZooError as e:
@@ -152,7 +158,10 @@ def wire_compressor(args: TrainArgs) -> ChannelCompressor | None:
 
 
 def stage_dir(spec: StageSpec) -> str:
-    """The stage's folder under --work: its name, and for `compress` its ratio too (compress_r8, ...)."""
+    """The stage's folder under --work: its name, and for `compress` its ratio too (compress_r8, ...), for a
+    fusion stage on another wire than the zoo's that wire's (cobevt_wire16, ...)."""
+    if spec.wire_ratio is not None:
+        return f"{spec.name}_wire{spec.wire_ratio}"
     return f"{spec.name}_r{spec.ratio}" if spec.name == COMPRESS else spec.name
 
 

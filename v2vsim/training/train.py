@@ -37,7 +37,7 @@ from torch import Tensor, nn
 from models import zoo
 from models.compression import ChannelCompressor
 from models.heads import AnchorTargetAssigner
-from models.registry import MODALITY, build_cooperative
+from models.registry import MODALITY, build_cooperative, is_intermediate
 from v2vsim.data.layout import DatasetError, runs_of
 from v2vsim.data.torch_dataset import CooperativeDataset, collate, tensor_inputs
 from v2vsim.training.augment import yaw_rotate_batch
@@ -155,6 +155,8 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
             raise ValueError(f"--stage compress: one ratio per run of the stage (main_train loops over --ratios), "
                              f"for a LiDAR zoo; got {args.ratios} for {args.encoder}")
         spec = dataclasses.replace(spec, ratio=args.ratios[0])
+    if args.wire_ratio is not None:
+        spec = on_wire(args, spec)
     if spec.name == EXTRAPOLATE:
         check_cache_encoder(args, spec, log)
     if camera and spec.distill_weight > 0:  # DiscoNet's teacher is early fusion: LiDAR only
@@ -169,6 +171,8 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
     wire = wire_compressor(args) if spec.inputs == "cache" and spec.name != COMPRESS and spec.max_agents > 1 else None
     if wire is not None:
         print(f"[{spec.name}] features through the zoo's wire compressor, ratio {wire.ratio}", file=log, flush=True)
+    elif spec.wire_ratio == 1:
+        print(f"[{spec.name}] features uncompressed (--wire-ratio 1)", file=log, flush=True)
     raw = spec.inputs == "points" or spec.distill_weight > 0  # the encoder (or the teacher) runs on sensor data
     extrapolate = spec.name == EXTRAPOLATE
     train = CooperativeDataset(args.data, "train", max_agents=spec.max_agents, delays=spec.delays, seed=args.seed,
@@ -342,6 +346,21 @@ def check_cache_encoder(args: TrainArgs, spec: StageSpec, log) -> None:
                          "or use the zoo trained with this --work")
 
 
+def on_wire(args: TrainArgs, spec: StageSpec) -> StageSpec:
+    """--wire-ratio R: an intermediate fusion stage trained on the ratio-R wire (its compressor from the zoo; 1:
+    uncompressed) into its own checkpoint <method>_r<R>.pt (manifest "wire_methods"), which runs with
+    comm.channel_compression: R load; on the zoo's own wire ratio it is the stage as usual."""
+    if args.wire_ratio < 1 or spec.name == EXTRAPOLATE or spec.inputs != "cache" or len(spec.methods) != 1 \
+            or not is_intermediate(spec.methods[0]):
+        raise ValueError(f"--wire-ratio {args.wire_ratio}: trains an intermediate fusion method (attfuse, fcooper, "
+                         f"v2vnet, disconet, cobevt) on another wire; stage {spec.name!r} fuses no neighbours' "
+                         "features (the ratio must be >= 1)")
+    entry = zoo.zoo_entry(args.encoder, args.preset, args.out)
+    if args.wire_ratio == zoo.wire_ratio(entry):
+        return spec
+    return dataclasses.replace(spec, wire_ratio=args.wire_ratio)
+
+
 def export(args: TrainArgs, spec: StageSpec, state: dict, history: list, wall_s: float, manifest: dict) -> Path:
     """Write the stage's checkpoint into the zoo and its manifest entry (the extrapolate stage: an add-on
     file "<method>_extrapolate.pt" under the zoo entry's "extrapolation", beside the method's own file)."""
@@ -351,6 +370,8 @@ def export(args: TrainArgs, spec: StageSpec, state: dict, history: list, wall_s:
         name = f"{spec.methods[0]}_{EXTRAPOLATE}.pt"
     if spec.name == COMPRESS:
         name = f"compressor_r{spec.ratio}.pt"
+    if spec.wire_ratio is not None:
+        name = f"{spec.name}_r{spec.wire_ratio}.pt"
     path = args.out / zoo.zoo_name(args.encoder, args.preset) / name
     cells = train_cells(args)
     config = {"spec": dataclasses.asdict(spec), "seed": args.seed, "encoder": args.encoder, "preset": args.preset,
@@ -367,6 +388,8 @@ def export(args: TrainArgs, spec: StageSpec, state: dict, history: list, wall_s:
         "wall_s": round(wall_s, 1), "device": args.device, "threads": args.threads, "bf16": args.bf16,
         "validation": history[-1]["validation"] if history else None,
     }
+    if spec.wire_ratio is not None:  # trained on another wire than the zoo's (zoo.rebuild_command repeats it)
+        info["wire_ratio"] = spec.wire_ratio
     if extrapolate:  # the checkpoint it was trained on top of (build_extrapolation refuses another one)
         entry = zoo.zoo_entry(args.encoder, args.preset, args.out)
         base = zoo.method_file(entry, spec.methods[0], args.out, args.encoder, args.preset)
@@ -375,7 +398,7 @@ def export(args: TrainArgs, spec: StageSpec, state: dict, history: list, wall_s:
     zoo.register(path, encoder=args.encoder, preset=args.preset, methods=[] if extrapolate else list(spec.methods),
                  info=info, root=args.out, provides_encoder=spec.name == "single",
                  extrapolates=tuple(spec.methods) if extrapolate else (), cells=cells,
-                 compresses=spec.ratio if spec.name == COMPRESS else None)
+                 compresses=spec.ratio if spec.name == COMPRESS else None, trained_wire=spec.wire_ratio)
     if spec.name == COMPRESS and spec.ratio == WIRE_RATIO:  # every later stage trains on this wire
         zoo.set_wire_ratio(args.encoder, args.preset, WIRE_RATIO, args.out)
     return path

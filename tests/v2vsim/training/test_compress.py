@@ -23,6 +23,7 @@ from v2vsim.perception.build import (
     compress,
     decompress,
     fusion_cells,
+    method_checkpoints,
     wire_ratio,
 )
 from v2vsim.training.stages import TrainArgs
@@ -36,7 +37,8 @@ def _args(data, tmp_path, stage: str, **kw) -> TrainArgs:
 
 @pytest.fixture(scope="module")
 def compressed_zoo(tiny_dataset, tmp_path_factory):
-    """A 64 x 64 zoo: single, cache, compressors for ratios 8 and 16 (8 = the wire), none, cobevt."""
+    """A 64 x 64 zoo: single, cache, compressors for ratios 8 and 16 (8 = the wire), none, cobevt, and cobevt
+    trained on the ratio-16 wire."""
     tmp = tmp_path_factory.mktemp("compressed")
     log = io.StringIO()
     for stage in ("single", "cache"):
@@ -44,6 +46,7 @@ def compressed_zoo(tiny_dataset, tmp_path_factory):
     main_train(_args(tiny_dataset, tmp, "compress", ratios=(8, 16)), log=log)
     for stage in ("none", "cobevt"):
         run_stage(_args(tiny_dataset, tmp, stage), log=log)
+    run_stage(_args(tiny_dataset, tmp, "cobevt", wire_ratio=16), log=log)
     return tmp, log.getvalue()
 
 
@@ -96,6 +99,56 @@ def test_a_ratio_without_a_trained_compressor_is_a_config_error(compressed_zoo) 
     msg = str(e.value)
     assert "comm.channel_compression: 32" in msg and "no trained compressor for ratio 32" in msg
     assert "allowed: 1, 8, 16" in msg and "--stage compress --ratios 32" in msg
+
+
+def test_a_fusion_method_trained_on_another_wire_has_its_own_checkpoint_that_runs_on_that_wire_load(
+        compressed_zoo) -> None:
+    tmp, log = compressed_zoo
+    entry = zoo.read_manifest(tmp / "zoo")["zoos"]["pointpillars_tiny"]
+    assert entry["methods"]["cobevt"] == "cobevt.pt"  # the zoo's wire (8) keeps its file
+    assert entry["wire_methods"] == {"16": {"cobevt": "cobevt_r16.pt"}}
+    assert entry["files"]["cobevt_r16.pt"]["wire_ratio"] == 16
+    assert "--stage cobevt --wire-ratio 16" in zoo.rebuild_command(tmp / "zoo" / "pointpillars_tiny" / "cobevt_r16.pt",
+                                                                   entry)
+    assert "[cobevt] features through the zoo's wire compressor, ratio 16" in log
+    assert zoo.wire_ratios_of(entry, "cobevt") == [8, 16] and zoo.wire_ratios_of(entry, "none") == [8]
+    weights = f"perception.weights={tmp / 'zoo'}"
+    for ratio, name in (("null", "cobevt.pt"), ("8", "cobevt.pt"), ("16", "cobevt_r16.pt")):
+        sc = load_scenario("scenarios/intersection.yaml", [weights, f"comm.channel_compression={ratio}",
+                                                          "perception.methods=[none,cobevt]"])
+        check_scenario(sc)
+        assert method_checkpoints(sc, ("none", "cobevt")) == {"none": "pointpillars_tiny/none.pt",
+                                                              "cobevt": f"pointpillars_tiny/{name}"}
+        model = build_method_models(sc, build_agent_encoder(sc), ("cobevt",))["cobevt"]
+        saved = torch.load(tmp / "zoo" / "pointpillars_tiny" / name, weights_only=True)["state_dict"]
+        key = next(k for k in saved if k.startswith("fusion.") and saved[k].is_floating_point())
+        assert torch.equal(model.state_dict()[key], saved[key]), (ratio, key)
+    a = torch.load(tmp / "zoo" / "pointpillars_tiny" / "cobevt.pt", weights_only=True)["state_dict"]
+    b = torch.load(tmp / "zoo" / "pointpillars_tiny" / "cobevt_r16.pt", weights_only=True)["state_dict"]
+    assert any(not torch.equal(a[k], b[k]) for k in a if k.startswith("fusion."))  # trained apart
+
+
+def test_a_fusion_method_without_a_checkpoint_for_the_run_s_wire_is_a_config_error(compressed_zoo) -> None:
+    tmp, _ = compressed_zoo
+    weights = f"perception.weights={tmp / 'zoo'}"
+    sc = load_scenario("scenarios/intersection.yaml", [weights, "comm.channel_compression=1",
+                                                       "perception.methods=[none,late,cobevt]"])
+    with pytest.raises(ConfigError) as e:
+        check_scenario(sc)
+    msg = str(e.value)
+    assert "comm.channel_compression: 1" in msg and "cobevt was trained on the ratio-8 wire" in msg
+    assert "ratios it has: 8, 16" in msg and "--stage cobevt --wire-ratio 1" in msg
+    # methods that fuse no feature messages run on any wire
+    check_scenario(load_scenario("scenarios/intersection.yaml", [weights, "comm.channel_compression=1",
+                                                                 "perception.methods=[none,late]"]))
+
+
+def test_wire_ratio_trains_only_fusion_methods_on_a_trained_wire(compressed_zoo, tiny_dataset) -> None:
+    tmp, _ = compressed_zoo
+    with pytest.raises(ValueError, match="--wire-ratio 16: trains an intermediate fusion method"):
+        run_stage(_args(tiny_dataset, tmp, "none", wire_ratio=16), log=io.StringIO())
+    with pytest.raises(DatasetError, match="no ratio-32 compressor"):
+        run_stage(_args(tiny_dataset, tmp, "cobevt", wire_ratio=32), log=io.StringIO())
 
 
 def test_random_weights_may_use_a_seeded_compressor_and_the_shipped_zoo_keeps_its_grid() -> None:
@@ -185,10 +238,11 @@ def test_a_live_run_on_the_compressed_wire_fuses_the_ego_s_own_map_uncompressed(
 
     tmp, _ = compressed_zoo
     out = {}
-    for name, ratio in (("wire8", "null"), ("wire1", "1")):
+    # (the zoo's cobevt has no checkpoint for the uncompressed wire: that run fuses none and late only)
+    for name, ratio, methods in (("wire8", "null", "none,late,cobevt"), ("wire1", "1", "none,late")):
         r = subprocess.run([sys.executable, "-m", "v2vsim.cli", "run", "scenarios/intersection.yaml", "--frames", "4",
                             "--out", str(tmp_path / name), "--set", f"perception.weights={tmp / 'zoo'}",
-                            "--set", "perception.methods=[none,late,cobevt]", "--set", "output.rerun=false",
+                            "--set", f"perception.methods=[{methods}]", "--set", "output.rerun=false",
                             "--set", f"comm.channel_compression={ratio}"],
                            capture_output=True, text=True, timeout=600)
         assert r.returncode == 0, r.stderr[-2000:]
