@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Rebuild the LiDAR model zoo from scratch (docs/training.md): record the dataset, then train every
 # stage into ZOO_DIR (default models/weights/). Each step resumes where it stopped if re-run.
-#   scripts/lidar_zoo.sh [DATA_DIR] [WORK_DIR] [ZOO_DIR]
+#   scripts/lidar_zoo.sh [DATA_DIR] [WORK_DIR] [ZOO_DIR]     (WIRE_RATIOS="1 16 32 64": CoBEVT on the other wires)
 # The grid is the tiny preset's (64 x 64, 1.56 m cells); ZOO_DIR must not hold a zoo of another grid.
 # BF16=0 trains every stage in float32 (default: bfloat16 autocast for `none` and the fusion methods but CoBEVT).
 set -euo pipefail
@@ -30,3 +30,7 @@ for stage in v2vnet attfuse fcooper disconet; do
 done
 # CoBEVT's learned latency extrapolation (comm.compensation), on top of its checkpoint
 $V train --data "$DATA" --stage extrapolate --out "$ZOO" --work "$WORK" --resume
+# the compression study's CoBEVT on the other wires (ratio 1 = uncompressed; 8 is the zoo's own wire, above)
+for r in ${WIRE_RATIOS:-1 16 32 64}; do
+  $V train --data "$DATA" --stage cobevt --wire-ratio "$r" --out "$ZOO" --work "$WORK" --resume
+done
