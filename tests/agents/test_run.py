@@ -105,11 +105,12 @@ def test_run_writes_report_metrics_recording_and_plots(tmp_path: Path) -> None:
     comm = m["comm"]
     for k in ("sent", "delivered", "dropped", "stale", "rejected", "bytes_per_message", "latency_ms"):
         assert k in comm
-    # two neighbours x 4 frames reached the ego's link models; each message is header + 64x32x32 float16
+    # two neighbours x 4 frames reached the ego's link models; each message is header + the 64 x 64 map compressed
+    # 8x by the zoo's wire (8 x 64 x 64 float16)
     assert comm["sent"] == 8
     assert comm["sent"] == comm["delivered"] + comm["dropped"] + comm["out_of_range"]
     assert comm["delivered"] == 8 and comm["latency_ms"]["p50"] is not None  # lossless, in range
-    assert 64 * 32 * 32 * 2 < comm["bytes_per_message"] < 64 * 32 * 32 * 2 + 512
+    assert 8 * 64 * 64 * 2 < comm["bytes_per_message"] < 8 * 64 * 64 * 2 + 512
     assert list(m["methods"]) == ["none", "late", "early", "attfuse", "fcooper", "v2vnet", "disconet", "cobevt"]
     for name, r in m["methods"].items():
         assert CONTRACT_METHOD_KEYS <= set(r), name
@@ -302,15 +303,14 @@ def test_a_port_taken_after_planning_is_replanned(tmp_path: Path, monkeypatch: p
 
 
 def _rogue_messages(run_id: str) -> list[tuple[str, bytes]]:
-    good = Message(kind="features", run_id=run_id, sender_id="cav1", frame=0, capture_time=0.0,
-                   sender_pose=(0.0, 0.0, 0.0, 0.0), payload=np.zeros((64, 32, 32), np.float16))
+    # the shipped LiDAR wire: 64 x 64 maps compressed 8x to 8 channels (the zoo's wire ratio)
+    head = dict(kind="features", run_id=run_id, frame=0, capture_time=0.0, sender_pose=(0.0, 0.0, 0.0, 0.0),
+                channel_compression=8)
+    good = Message(sender_id="cav1", payload=np.zeros((8, 64, 64), np.float16), **head)
     data = encode(good)
-    nan = Message(kind="features", run_id=run_id, sender_id="cav1", frame=0, capture_time=0.0,
-                  sender_pose=(0.0, 0.0, 0.0, 0.0), payload=np.full((64, 32, 32), np.nan, np.float16))
-    wrong_shape = Message(kind="features", run_id=run_id, sender_id="cav1", frame=0, capture_time=0.0,
-                          sender_pose=(0.0, 0.0, 0.0, 0.0), payload=np.zeros((64, 16, 16), np.float16))
-    stranger = Message(kind="features", run_id=run_id, sender_id="cav9", frame=0, capture_time=0.0,
-                       sender_pose=(0.0, 0.0, 0.0, 0.0), payload=np.zeros((64, 32, 32), np.float16))
+    nan = Message(sender_id="cav1", payload=np.full((8, 64, 64), np.nan, np.float16), **head)
+    wrong_shape = Message(sender_id="cav1", payload=np.zeros((8, 32, 32), np.float16), **head)
+    stranger = Message(sender_id="cav9", payload=np.zeros((8, 64, 64), np.float16), **head)
     return [("cav1", data[: len(data) // 2]), ("cav1", b"XXXX" + data[4:]), ("cav1", b"\x01\x02"),
             ("cav1", encode(nan, check_finite=False)), ("cav1", encode(wrong_shape)), ("cav9", encode(stranger))]
 
@@ -435,9 +435,9 @@ def test_a_run_with_comm_share_topk_sends_sparse_features(tmp_path: Path) -> Non
     assert run.finish() == 0, "".join(run.log)
     m = _metrics(out)
     assert m["comm"]["rejected"] == 0 and m["comm"]["delivered"] > 0
-    dense = 64 * 32 * 32 * 2
+    dense = 8 * 64 * 64 * 2  # the zoo's wire: 64 x 64 maps compressed to 8 channels
     per_message = m["comm"]["bytes_per_message"]
-    assert 102 * (64 * 2 + 2) < per_message < dense / 7  # 102 of 1024 cells, 130 bytes each, plus headers
+    assert 410 * (8 * 2 + 2) < per_message < dense / 7  # 410 of 4096 cells, 18 bytes each, plus headers
     assert m["methods"]["cobevt"]["iou_vehicle"] is not None
 
 
@@ -445,12 +445,14 @@ def test_compensation_with_zero_latency_changes_nothing(tmp_path: Path) -> None:
     """With no latency every message is fused aligned (age 0), so compensated late fusion and CoBEVT (the zoo's
     learned extrapolation) equal the uncompensated ones exactly; with the shipped 27 Mbps link late fusion's
     outputs come a frame old and get moved, while feature messages still make the 50 ms deadline."""
-    args = ["--frames", "8", "--set", "comm.range_m=300", "--methods", "none,late,cobevt",
-            "--set", "output.rerun=false"]
-    ideal = ["--set", "comm.bandwidth_mbps=null"]
+    args = ["--set", "comm.range_m=300", "--methods", "none,late,cobevt", "--set", "output.rerun=false"]
+    ideal = ["--frames", "8", "--set", "comm.bandwidth_mbps=null"]
+    # 16 frames on the shipped link: in the first few the neighbours detect few vehicles that move (a box moves
+    # only when matched to the sender's previous one at >= 0.5 m/s), so compensation may not change a thing yet
+    shipped = ["--frames", "16"]
     runs = {name: Run(*args, *extra, "--out", str(tmp_path / name)) for name, extra in [
         ("off", ideal), ("on", [*ideal, "--set", "comm.compensation=true"]),
-        ("late_off", []), ("late_on", ["--set", "comm.compensation=true"])]}
+        ("late_off", shipped), ("late_on", [*shipped, "--set", "comm.compensation=true"])]}
     assert all(r.finish() == 0 for r in runs.values()), "".join(x for r in runs.values() for x in r.log)
     m = {name: _metrics(tmp_path / name) for name in runs}
     assert m["on"]["comm"]["by_kind"]["outputs"]["age_ms"]["buckets"] == {"0": m["on"]["comm"]["by_kind"]["outputs"]
@@ -458,7 +460,7 @@ def test_compensation_with_zero_latency_changes_nothing(tmp_path: Path) -> None:
     assert _scores(m["on"]) == _scores(m["off"])
     assert set(m["late_on"]["comm"]["by_kind"]["outputs"]["age_ms"]["buckets"]) == {"100"}
     assert _scores(m["late_on"])["methods"]["none"] == _scores(m["late_off"])["methods"]["none"]
-    assert set(m["late_on"]["comm"]["age_ms"]["buckets"]) == {"0"}  # 39 ms of serialisation < the 50 ms deadline
+    assert set(m["late_on"]["comm"]["age_ms"]["buckets"]) == {"0"}  # 19 ms of serialisation < the 50 ms deadline
     assert _scores(m["late_on"])["methods"]["cobevt"] == _scores(m["late_off"])["methods"]["cobevt"]
     assert m["on"]["compensation"]["cobevt"].startswith("learned") and m["off"]["compensation"]["cobevt"] == "none"
     assert _scores(m["late_on"])["methods"]["late"] != _scores(m["late_off"])["methods"]["late"]

@@ -23,7 +23,7 @@ def test_curve_rows_bytes_grow_with_the_share_and_nothing_costs_nothing(tmp_path
     assert {m for _, m in by} == {"cobevt", "none"}
     assert by[(0.0, "cobevt")]["bytes_per_frame"] == 0
     assert 0 < by[(0.1, "cobevt")]["bytes_per_frame"] < by[(1.0, "cobevt")]["bytes_per_frame"]
-    assert by[(1.0, "cobevt")]["bytes_per_frame"] > 3 * 64 * 32 * 32 * 2  # three neighbours, whole maps
+    assert by[(1.0, "cobevt")]["bytes_per_frame"] > 3 * 8 * 64 * 64 * 2  # three neighbours, whole maps on the 8x wire
     assert by[(0.0, "cobevt")]["iou_vehicle"] == by[(0.0, "none")]["iou_vehicle"]  # nothing sent: nothing fused
     with open(tmp_path / "bandwidth.csv") as f:
         assert len(list(csv.DictReader(f))) == 6
