@@ -348,7 +348,7 @@ def check_cache_encoder(args: TrainArgs, spec: StageSpec, log) -> None:
 
 def on_wire(args: TrainArgs, spec: StageSpec) -> StageSpec:
     """--wire-ratio R: an intermediate fusion stage trained on the ratio-R wire (its compressor from the zoo; 1:
-    uncompressed) into its own checkpoint <method>_r<R>.pt (manifest "wire_methods"), which runs with
+    uncompressed) into its own checkpoint <method>_r<R>.pt (manifest "wire_methods"), the one runs with
     comm.channel_compression: R load; on the zoo's own wire ratio it is the stage as usual."""
     if args.wire_ratio < 1 or spec.name == EXTRAPOLATE or spec.inputs != "cache" or len(spec.methods) != 1 \
             or not is_intermediate(spec.methods[0]):
