@@ -16,4 +16,4 @@ for sc in intersection t_junction; do
   $V sweep scenarios/$sc.yaml --grid comm.channel_compression=$RATIOS --seeds "$SEEDS" --frames 200 \
     --methods ${METHODS:-none,cobevt} --set comm.bandwidth_mbps=null --set output.rerun=false ${EXTRA_SET:-} --out "$OUT/$sc"
 done
-python scripts/compression_table.py "$OUT"/*
+python scripts/compression_table.py "$OUT"/* --plot "$OUT/compression.png"
