@@ -11,6 +11,8 @@ from pathlib import Path
 
 from v2vsim.config import ConfigError, check_output_dir, load_scenario
 
+IMAGE_BACKBONE_KINDS = ("resnet", "efficientnet_lite0")
+
 _RUN_ID = re.compile(r"[A-Za-z0-9_.-]{1,64}")  # a zenoh key chunk (v2vsim/<run>/<kind>/<sender>)
 
 
@@ -112,7 +114,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
             return 2
     targs = TrainArgs(data=Path(args.data), stage=args.stage, out=Path(args.out), work=Path(args.work),
                       encoder=args.encoder, preset=args.preset, cells=args.cells, bf16=args.bf16,
-                      wire_ratio=args.wire_ratio, **extra,
+                      wire_ratio=args.wire_ratio, image_backbone=args.image_backbone, **extra,
                       device=args.device, threads=args.threads, seed=args.seed, resume=args.resume,
                       val_every=args.val_every, workers=args.workers,
                       overrides=tuple(overrides.items()), command=command_line(sys.argv[2:]))
@@ -279,6 +281,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="an intermediate fusion stage: train it on the ratio-R wire instead of the zoo's (its own "
                         "checkpoint <method>_r<R>.pt, loaded by runs with comm.channel_compression: R; 1: "
                         "uncompressed); docs/training.md")
+    # the kinds of models.image_backbone.IMAGE_BACKBONES (named here: the CLI imports no torch to parse)
+    p.add_argument("--image-backbone", default=None, choices=IMAGE_BACKBONE_KINDS,
+                   help="a camera encoder's image backbone (default: the --out zoo's, else the preset's: "
+                        "ImageNet EfficientNet-Lite0 for tiny); models/image_backbone.py")
     p.set_defaults(func=_cmd_train)
 
     p = sub.add_parser("sweep", help="run a scenario over a grid of overrides x seeds: sweep.csv/json/md, plots "

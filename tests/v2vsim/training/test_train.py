@@ -13,6 +13,7 @@ import torch
 from models import zoo
 from models.heads import AnchorTargetAssigner
 from v2vsim.config import load_scenario
+from v2vsim.data.layout import DatasetError
 from v2vsim.data.torch_dataset import CooperativeDataset, collate
 from v2vsim.perception.build import build_agent_encoder, build_method_models, method_checkpoints
 from v2vsim.training.losses import perception_loss
@@ -128,6 +129,18 @@ def test_camera_samples_round_trip_and_a_few_steps_lower_the_loss(camera_dataset
 
     args = dataclasses.replace(_args(camera_dataset, tmp_path, "single"), encoder="sinbevt")
     model = build_stage_model(args, SPECS["single"])
+    # the single stage starts the tiny preset's image backbone from the packaged ImageNet checkpoint, and
+    # fine-tunes it at a tenth of the learning rate of the layers that start from scratch
+    from models.efficientnet_lite import checkpoint_path
+    from v2vsim.training.stages import PRETRAINED_LR_SCALE, param_groups
+
+    imagenet = torch.load(checkpoint_path(), map_location="cpu", weights_only=True)
+    net = model.encoder.efficientnet.net
+    assert all(torch.equal(v, imagenet[k]) for k, v in net.state_dict().items())
+    groups = param_groups(model, SPECS["single"])
+    assert [g["lr"] for g in groups] == [SPECS["single"].lr * PRETRAINED_LR_SCALE, SPECS["single"].lr]
+    assert {id(p) for p in groups[0]["params"]} == {id(p) for p in net.parameters()}
+    assert sum(len(g["params"]) for g in groups) == len(list(model.parameters()))
     batch = collate([ds[0], ds[len(ds) - 1]])
     batch["valid"][:, 1:] = False  # single-agent stage: the ego only
     losses, terms = _single_stage_steps(model, batch, None, 8)
@@ -151,6 +164,10 @@ def test_camera_stages_chain_into_a_zoo_a_camera_run_loads(camera_dataset, tmp_p
     assert "validation: cobevt: IoU veh" in log.getvalue()
     entry = zoo.read_manifest(tmp_path / "zoo")["zoos"]["sinbevt_tiny"]
     assert entry["encoder"] == "single.pt" and entry["methods"]["cobevt"] == "cobevt.pt"
+    assert entry["image_backbone"] == "efficientnet_lite0"  # recorded: runs build the zoo's backbone
+    with pytest.raises(DatasetError, match="trained with the efficientnet_lite0 backbone"):
+        run_stage(dataclasses.replace(_args(camera_dataset, tmp_path, "none"), encoder="sinbevt",
+                                      image_backbone="resnet"), log=log)
     sc = load_scenario("scenarios/intersection.yaml", [*CAMERA, f"perception.weights={tmp_path / 'zoo'}"])
     enc = build_agent_encoder(sc)
     models = build_method_models(sc, enc, ("none", "cobevt"))
