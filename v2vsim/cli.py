@@ -125,9 +125,11 @@ def _cmd_train(args: argparse.Namespace) -> int:
             print("v2vsim: error: --device cuda: no CUDA device here (this torch build: "
                   f"{torch.__version__}); use --device cpu", file=sys.stderr)
             return 2
+    from models.efficientnet_lite import PretrainedWeightsMissing
+
     try:
         return main_train(targs)
-    except (ValueError, DatasetError) as e:
+    except (ValueError, DatasetError, PretrainedWeightsMissing) as e:
         print(f"v2vsim: error: {e}", file=sys.stderr)
         return 2
 

