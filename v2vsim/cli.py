@@ -22,10 +22,22 @@ def _scenario_args(p: argparse.ArgumentParser) -> None:
                    help="override a scenario key, e.g. --set comm.drop.p=0.3 (repeatable)")
 
 
+def _method_names(value: str | None) -> str | None:
+    """--methods "a, b" -> "a,b" (None when not given); ConfigError when it names no method (an empty --methods
+    used to run every method). The names themselves are checked with the scenario (perception.methods)."""
+    if value is None:
+        return None
+    names = [m.strip() for m in value.split(",") if m.strip()]
+    if not names:
+        raise ConfigError(f"--methods {value!r}: names no method; expected comma-separated methods, e.g. none,cobevt")
+    return ",".join(names)
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
     overrides = list(args.overrides)
-    if args.methods:
-        overrides.append(f"perception.methods=[{args.methods}]")
+    methods = _method_names(args.methods)
+    if methods:
+        overrides.append(f"perception.methods=[{methods}]")
     scenario = load_scenario(args.scenario, overrides)  # validate before the heavy imports
     if args.frames is not None and args.frames < 1:  # 0 used to mean "the whole duration", -1 "nothing"
         raise ConfigError(f"--frames {args.frames}: expected a number of frames >= 1 "
@@ -153,7 +165,8 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     from v2vsim.study.sweep import SweepArgs, sweep
 
     return sweep(SweepArgs(scenario=Path(args.scenario), grid=tuple(args.grid), seeds=args.seeds, out=Path(args.out),
-                           frames=args.frames, jobs=args.jobs, overrides=tuple(args.overrides), methods=args.methods,
+                           frames=args.frames, jobs=args.jobs, overrides=tuple(args.overrides),
+                           methods=_method_names(args.methods),
                            bootstrap=args.bootstrap, engine=args.engine, scheduler=args.scheduler))
 
 
@@ -168,7 +181,7 @@ def _cmd_bandwidth(args: argparse.Namespace) -> int:
         return 2
     if args.frames < 1:
         raise ConfigError(f"--frames {args.frames}: expected a number of frames >= 1")
-    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    methods = str(_method_names(args.methods)).split(",")
     overrides = dict(o.split("=", 1) for o in args.overrides if "=" in o)
     bad = [o for o in args.overrides if "=" not in o]
     if bad:

@@ -25,6 +25,7 @@ checkpoints every few minutes and per epoch under --work; `--resume` continues m
 from __future__ import annotations
 
 import dataclasses
+import json
 import shlex
 import sys
 import time
@@ -38,7 +39,7 @@ from models import zoo
 from models.compression import ChannelCompressor
 from models.heads import AnchorTargetAssigner
 from models.registry import MODALITY, is_intermediate
-from v2vsim.data.layout import DatasetError, runs_of
+from v2vsim.data.layout import DatasetError, read_manifest, runs_of
 from v2vsim.data.torch_dataset import CooperativeDataset, collate, tensor_inputs
 from v2vsim.training.augment import yaw_rotate_batch
 from v2vsim.training.cache import (
@@ -144,6 +145,8 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
         raise ValueError(f"--stage early: early fusion ships LiDAR points; the {args.encoder} (camera) zoo has no "
                          "early stage")
     check_zoo_grid(args)
+    if camera:
+        check_dataset_has_cameras(args)
     if args.stage == "cache":
         encoder, source = cache_encoder(args, log)
         store = CooperativeDataset(args.data, "train").store
@@ -218,6 +221,8 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
         print(f"[{spec.name}] resuming at epoch {epoch + 1}, step {step}", file=log)
     elif last.is_file() and not args.resume:
         print(f"[{spec.name}] starting over ({last} exists; --resume continues it)", file=log)
+    elif args.resume:
+        print(f"[{spec.name}] --resume: nothing to resume ({last} does not exist): starting from scratch", file=log)
 
     def save(ep: int, st: int) -> None:
         tmp = work / "last.tmp"
@@ -302,6 +307,17 @@ def batches(ds: CooperativeDataset, perm: np.ndarray, batch: int, first: int, st
         return (collate([ds[j] for j in c]) for c in chunks)
     return iter(torch.utils.data.DataLoader(ds, batch_sampler=chunks, collate_fn=collate, num_workers=workers,
                                             prefetch_factor=4, persistent_workers=False))
+
+
+def check_dataset_has_cameras(args: TrainArgs) -> None:
+    """A camera encoder trains on a dataset recorded with cameras: DatasetError naming the first run without."""
+    doc = read_manifest(args.data)
+    for r in doc["runs"]:
+        info = args.data / r["name"] / "run.json"
+        if info.is_file() and not json.loads(info.read_text()).get("cameras", False):
+            raise DatasetError(f"{info}: run {r['name']} was recorded without cameras; --encoder {args.encoder} "
+                               "trains on camera images: record the dataset with `v2vsim dataset ... --cameras "
+                               "--set perception.modality=camera` (scripts/camera_zoo.sh)")
 
 
 def cache_encoder(args: TrainArgs, log) -> tuple[nn.Module, str]:

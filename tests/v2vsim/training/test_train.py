@@ -212,3 +212,15 @@ def test_worker_processes_load_the_same_batches(tiny_dataset) -> None:
         assert torch.equal(a["rel_poses"], b["rel_poses"]) and torch.equal(a["vehicle"], b["vehicle"])
         assert all(torch.equal(p, q) for ps, qs in zip(a["points"], b["points"], strict=True)
                    for p, q in zip(ps, qs, strict=True))
+
+
+def test_a_camera_encoder_on_a_lidar_dataset_is_a_clear_error(tiny_dataset, tmp_path) -> None:
+    """It used to end in a KeyError traceback ('images_cav2 is not a file in the archive')."""
+    with pytest.raises(DatasetError, match="recorded without cameras.*--cameras"):
+        run_stage(dataclasses.replace(_args(tiny_dataset, tmp_path, "single"), encoder="sinbevt"), log=io.StringIO())
+
+
+def test_resume_with_nothing_to_resume_says_so(tiny_dataset, tmp_path) -> None:
+    log = io.StringIO()
+    run_stage(dataclasses.replace(_args(tiny_dataset, tmp_path, "single"), resume=True), log=log)
+    assert "--resume: nothing to resume" in log.getvalue() and "starting from scratch" in log.getvalue()
