@@ -39,7 +39,7 @@ from agents.progress import ENV as PROGRESS_ENV
 from agents.progress import ProgressDisplay, parse_record
 from v2vsim.comm.transport import TransportError, free_ports, loopback_endpoint, open_session
 from v2vsim.config import ConfigError, Scenario, check_output_dir
-from v2vsim.perception.build import check_scenario
+from v2vsim.perception.build import check_scenario, runnable_methods
 from v2vsim.sensors.sensing import ego_ids
 from v2vsim.traffic.base import cav_id
 
@@ -124,8 +124,13 @@ def run(sc: Scenario, out: Path, frames: int | None = None, remote_cavs: tuple[s
         return 2
     procs = ["driver.main"] + [f"cav.{c}" for c in cavs if c not in remote_cavs] + [f"ego.{e}" for e in egos]
     overrides = _overrides_for_children(sc)
+    runnable = runnable_methods(sc)
     print(f"v2vsim: run {run_id}: {len(cavs)} CAVs, ego {', '.join(egos)}, {frames} frames, "
-          f"methods {', '.join(sc.perception.methods)} -> {out}", file=sys.stderr)
+          f"methods {', '.join(runnable)} -> {out}", file=sys.stderr)
+    dropped = [m for m in sc.perception.methods if m not in runnable]
+    if dropped:
+        print(f"v2vsim: note: {', '.join(dropped)} left out: early fusion ships LiDAR points and this run's "
+              f"modality is {sc.perception.modality}", file=sys.stderr)
     if remote_cavs:
         print("v2vsim: waiting for remote CAVs; on their hosts run:", file=sys.stderr)
         for c in remote_cavs:

@@ -168,8 +168,10 @@ def test_the_camera_scenario_runs_its_shipped_zoo(tmp_path: Path) -> None:
     out = tmp_path / "cam"
     r = subprocess.run([sys.executable, "-m", "v2vsim.cli", "run", str(REPO / "scenarios" / "intersection_camera.yaml"),
                         "--frames", "2", "--out", str(out), "--set", "cavs.count=2", "--set", "comm.range_m=300",
-                        "--set", "output.rerun=false"], capture_output=True, text=True, timeout=300, cwd=REPO)
+                        "--set", "output.rerun=false", "--methods", "none,late,early,attfuse,fcooper,v2vnet,disconet,"
+                        "cobevt"], capture_output=True, text=True, timeout=300, cwd=REPO)
     assert r.returncode == 0, r.stderr
+    assert "note: early left out: early fusion ships LiDAR points" in r.stderr  # said on the terminal too
     m = _metrics(out)
     assert m["modality"] == "camera" and m["encoder"] == "sinbevt" and m["comm"]["delivered"] == 2
     assert list(m["methods"]) == ["none", "late", "attfuse", "fcooper", "v2vnet", "disconet", "cobevt"]

@@ -44,6 +44,9 @@ def _one_line_exit_2(argv: list[str], capsys: pytest.CaptureFixture[str], *expec
     (["--set", "comm.channel_compression=16"], ["comm.channel_compression: 16", "trained on the ratio-8 wire",
                                                 "--wire-ratio 16"]),
     (["--set", "comm.fusion_deadline_ms=100"], ["comm.fusion_deadline_ms", "less than one frame"]),
+    # a relative perception.weights is resolved against the scenario's folder: the error says so
+    (["--set", "perception.weights=my_zoo"], ["perception.weights", "resolved against the scenario's folder",
+                                              "absolute path"]),
     # an empty --methods used to run all eight methods, exit 0; ",," was echoed as perception.methods=[,,]
     (["--methods", ""], ["--methods ''", "names no method", "none,cobevt"]),
     (["--methods", ",,"], ["--methods ',,'", "names no method"]),

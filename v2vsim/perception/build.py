@@ -36,10 +36,13 @@ def zoo_for(sc: Scenario) -> tuple[Path, dict] | None:
     root = zoo.WEIGHTS_DIR
     if spec != "auto":
         root = Path(spec)
-        if not root.is_absolute():
+        relative = not root.is_absolute()
+        if relative:
             root = Path(sc.source).parent / root
         if not (root / "manifest.json").is_file():
-            raise ConfigError(f"{sc.source}: perception.weights: no zoo manifest at {root / 'manifest.json'}; "
+            how = (f" ({spec!r} is relative, so it is resolved against the scenario's folder "
+                   f"{Path(sc.source).parent}, not the working directory; give an absolute path)" if relative else "")
+            raise ConfigError(f"{sc.source}: perception.weights: no zoo manifest at {root / 'manifest.json'}{how}; "
                               "allowed: 'auto', 'none' or a folder written by `v2vsim train --out`")
     try:
         entry = zoo.zoo_entry(sc.perception.encoder, sc.perception.preset, root)
