@@ -270,6 +270,21 @@ def test_killed_driver_is_reported_and_every_process_stops(tmp_path: Path) -> No
     assert status.startswith("driver died after frame"), status  # and says why it stopped
 
 
+def test_killed_ego_leaves_a_metrics_json_that_says_so(tmp_path: Path) -> None:
+    """issue 34 item 9: a SIGKILLed ego writes nothing; the runner writes metrics.json with why."""
+    out = tmp_path / "run"
+    run = Run("--frames", "400", "--out", str(out), "--set", "cavs.count=2", "--methods", "none",
+              "--set", "output.rerun=false")
+    run.wait_frames(2)
+    egos = _agents(run, "agents.ego")
+    assert len(egos) == 1
+    egos[0].send_signal(signal.SIGKILL)
+    assert run.finish(timeout=60) == 1, "".join(run.log)
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["status"].startswith("failed: ego.cav0 died (signal 9, SIGKILL)"), m["status"]
+    assert m["methods"] == {} and m["frames"] == 0 and m["scenario"] == "intersection"
+
+
 def test_a_port_taken_after_planning_is_replanned(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                                   capsys: pytest.CaptureFixture[str]) -> None:
     """issue 8 item 5: another program takes the port the runner picked for the ego before the ego
