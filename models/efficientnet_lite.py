@@ -57,6 +57,7 @@ LITE0_STAGES: tuple[tuple[int, int, int, int, int], ...] = (
 )
 STEM_CHANNELS = 32
 HEAD_CHANNELS = 1280
+HEAD_KEY_PREFIXES: tuple[str, ...] = ("_conv_head.", "_bn1.")
 FEATURE_STRIDES: tuple[int, ...] = (4, 8, 16, 32)
 BN_EPS = 1e-3  # TF default of the EfficientNet builders
 BN_MOMENTUM = 0.01  # PyTorch convention for TF's decay 0.99
@@ -150,9 +151,11 @@ class EfficientNetLite0(nn.Module):
     Args:
         classifier: build the 1000-way ImageNet FC ``_fc`` (only for ``logits``).
         dropout: dropout before the FC (0.2 for Lite0).
+        head: build ``_conv_head``/``_bn1`` (0.4 M parameters that ``forward_features`` never uses; a BEV
+            encoder leaves them out so its checkpoints do not carry them). ``classifier`` needs it.
     """
 
-    def __init__(self, classifier: bool = False, dropout: float = 0.2) -> None:
+    def __init__(self, classifier: bool = False, dropout: float = 0.2, head: bool = True) -> None:
         super().__init__()
         self._conv_stem = SameConv2d(3, STEM_CHANNELS, 3, stride=2)
         self._bn0 = _bn(STEM_CHANNELS)
@@ -170,8 +173,12 @@ class EfficientNetLite0(nn.Module):
                 self.out_channels[stride] = out_ch
         self._blocks = nn.ModuleList(blocks)
         self.out_channels = {s: self.out_channels[s] for s in FEATURE_STRIDES}  # {4: 24, 8: 40, 16: 112, 32: 320}
-        self._conv_head = SameConv2d(in_ch, HEAD_CHANNELS, 1)
-        self._bn1 = _bn(HEAD_CHANNELS)
+        if classifier and not head:
+            raise ValueError("EfficientNetLite0: classifier=True needs head=True")
+        self.has_head = head
+        if head:
+            self._conv_head = SameConv2d(in_ch, HEAD_CHANNELS, 1)
+            self._bn1 = _bn(HEAD_CHANNELS)
         self.has_classifier = classifier
         if classifier:
             self._dropout = nn.Dropout(dropout)
@@ -223,19 +230,22 @@ def checkpoint_path() -> Path:
 def load_imagenet_lite0(model: EfficientNetLite0) -> list[str]:
     """Load the packaged ImageNet checkpoint strictly; returns the checkpoint keys left out.
 
-    With ``classifier=False`` exactly ``_fc.weight`` and ``_fc.bias`` are dropped; every other key (294
-    tensors incl. BN buffers) must match by name and shape.
+    With ``classifier=False`` exactly ``_fc.weight`` and ``_fc.bias`` are dropped (with ``head=False`` also
+    the ``_conv_head``/``_bn1`` tensors); every other key (294 tensors incl. BN buffers) must match by name
+    and shape.
     """
     state = torch.load(checkpoint_path(), map_location="cpu", weights_only=True)
     dropped = [] if model.has_classifier else [k for k in CLASSIFIER_KEYS if k in state]
+    if not model.has_head:
+        dropped += [k for k in state if k.startswith(HEAD_KEY_PREFIXES)]
     for k in dropped:
         del state[k]
     model.load_state_dict(state, strict=True)
     return dropped
 
 
-def pretrained_efficientnet_lite0(classifier: bool = False) -> EfficientNetLite0:
+def pretrained_efficientnet_lite0(classifier: bool = False, head: bool = True) -> EfficientNetLite0:
     """EfficientNet-Lite0 with the ImageNet weights (train mode: call ``.eval()`` or freeze BN as needed)."""
-    model = EfficientNetLite0(classifier=classifier)
+    model = EfficientNetLite0(classifier=classifier, head=head)
     load_imagenet_lite0(model)
     return model

@@ -1,7 +1,8 @@
 """LaRa camera encoder (LaRa supp. Sec. A, Eq. 5-12): images -> latent array -> BEV map.
 
-    images [B, M, 3, h, w] -> resize -> ResNet (models/resnet.py) layer1..3 -> ``neck``: FPN-lite sum at
-    stride 8 (LaRa uses one stride-8 map with c = 128)            -> [B*M, c, h/8, w/8]
+    images [B, M, 3, h, w] -> resize -> image backbone at strides 8/16/32 (models/image_backbone.py: ImageNet
+    EfficientNet-Lite0, LaRa's family, or a from-scratch ResNet) -> ``neck``: FPN-lite sum at stride 8
+    (LaRa uses one stride-8 map with c = 128)                      -> [B*M, c, h/8, w/8]
     camera-ray embedding per feature pixel: MLP_ray(origin, unit direction) (or Plücker (d, o x d)),
     concatenated to the features                                   -> input tokens [B, M*h*w, c + c_ray]
     ``encode``  latent-input cross-attention (Eq. 8), residual     -> latents [B, L, D]
@@ -10,9 +11,10 @@
     ``decode``  BEV-query-to-latent cross-attention, NOT residual (Eq. 10) -> [B, F*F, Dq]
     ``head``    Linear Dq -> C, reshaped                            -> [B, C, F, F]
 
-Stage submodules (forward-hook names): ``resnet.layer1..3``, ``neck``, ``encode``, ``process``,
-``decode``, ``head``; ``stage_shapes()`` reports them. The output has SinBEVT's shape for the preset
-(paper [B, 128, 32, 32], tiny [B, 64, 32, 32]) on the same BevGrid convention (row 0 front, col 0 left).
+Stage submodules (forward-hook names): the backbone's three maps (e.g. ``efficientnet.net._blocks.4``),
+``neck``, ``encode``, ``process``, ``decode``, ``head``; ``stage_shapes()`` reports them. The output has
+SinBEVT's shape for the preset (paper [B, 128, 32, 32], tiny [B, 64, 32, 32]) on the same BevGrid
+convention (row 0 front, col 0 left).
 Latent count/width and layer counts are our choices (the supplement defers them to the code).
 """
 
@@ -26,10 +28,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from models.fax import Mlp
-from models.resnet import ResNet
+from models.image_backbone import build_image_backbone
 from models.sinbevt import (
-    IMAGENET_MEAN,
-    IMAGENET_STD,
     CameraEncoderIntrospection,
     bev_cell_xy,
     camera_centres,
@@ -63,6 +63,7 @@ class LaRaConfig:
     mlp_ratio: int = 2
     cameras: int = 4
     fov_deg: float = 110.0
+    backbone: str = "resnet"  # image backbone (models.image_backbone): "resnet" | "efficientnet_lite0"
 
 
 PRESETS: dict[str, LaRaConfig] = {
@@ -84,7 +85,8 @@ PRESETS: dict[str, LaRaConfig] = {
         out_channels=128,
         out_cells=32,
     ),
-    # CPU size: SinBEVT "tiny" image encoder (128x128, half width), 128 latents of width 128, 2 layers.
+    # CPU size: SinBEVT "tiny" image encoder (128x128, ImageNet EfficientNet-Lite0; backbone="resnet": the
+    # from-scratch half-width ResNet of the first camera zoo), 128 latents of width 128, 2 layers.
     "tiny": LaRaConfig(
         image_size=(128, 128),
         raw_image_size=(150, 200),
@@ -100,6 +102,7 @@ PRESETS: dict[str, LaRaConfig] = {
         query_dim=64,
         out_channels=64,
         out_cells=32,
+        backbone="efficientnet_lite0",
     ),
 }
 
@@ -238,11 +241,8 @@ class LatentStack(nn.Module):
 class LaRa(CameraEncoderIntrospection, nn.Module):
     """LaRa camera encoder: forward(images, intrinsics, extrinsics) -> [B, C, F, F] BEV features."""
 
-    per_camera_stages = ("resnet.", "neck")
-
-    stage_names: tuple[str, ...] = (
-        "resnet.layer1", "resnet.layer2", "resnet.layer3", "neck", "encode", "process", "decode", "head"
-    )
+    per_camera_extra = ("neck",)
+    head_stage_names: tuple[str, ...] = ("neck", "encode", "process", "decode", "head")  # after the backbone's
 
     def __init__(self, config: LaRaConfig, bev_size_m: float = 100.0) -> None:
         super().__init__()
@@ -253,10 +253,9 @@ class LaRa(CameraEncoderIntrospection, nn.Module):
         self.bev_size_m = bev_size_m
         self.out_channels: int = cfg.out_channels
         self.out_cells: int = cfg.out_cells
-        self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
-        self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
-        self.resnet = ResNet(width=cfg.resnet_width, blocks=cfg.resnet_blocks)
-        self.neck = FeatureNeck(self.resnet.out_channels, cfg.feat_dim)
+        self.backbone_attr, backbone = build_image_backbone(cfg.backbone, cfg.resnet_width, cfg.resnet_blocks)
+        self.add_module(self.backbone_attr, backbone)
+        self.neck = FeatureNeck(backbone.out_channels, cfg.feat_dim)
         self.ray_mlp = Mlp(6, cfg.ray_dim, cfg.ray_dim)  # MLP_ray
         self.latents = nn.Parameter(torch.randn(cfg.num_latents, cfg.latent_dim) * 0.02)
         in_dim = cfg.feat_dim + cfg.ray_dim
@@ -285,8 +284,8 @@ class LaRa(CameraEncoderIntrospection, nn.Module):
         b, m = images.shape[:2]
         intrinsics, extrinsics = intrinsics.to(images.dtype), extrinsics.to(images.dtype)
         images, intrinsics = resize_images(images, intrinsics, self.config.image_size)
-        x = (images.flatten(0, 1) - self.mean) / self.std
-        feat = self.neck(self.resnet(x))  # [B*M, c, h, w]
+        x = self.image_backbone.normalise(images.flatten(0, 1))  # [B*M, 3, H, W]
+        feat = self.neck(self.image_backbone(x))  # [B*M, c, h, w]
         h, w = feat.shape[-2:]
         feat = feat.unflatten(0, (b, m)).permute(0, 1, 3, 4, 2)  # [B, M, h, w, c]
         rays = self.ray_mlp(self.ray_embedding(intrinsics, extrinsics, (h, w)))  # [B, M, h, w, c_ray]

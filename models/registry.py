@@ -21,9 +21,11 @@ from models.fusion.fcooper import FCooperFusion
 from models.fusion.none import NoFusion
 from models.fusion.v2vnet import V2VNetFusion
 from models.heads import BevHeads, build_bev_heads
+from models.lara import PRESETS as LARA_PRESETS
 from models.lara import build_lara
 from models.pointpillars import build_pointpillars
 from models.presets import get_preset
+from models.sinbevt import PRESETS as SINBEVT_PRESETS
 from models.sinbevt import build_sinbevt
 
 ENCODERS: dict[str, Callable[..., nn.Module]] = {
@@ -59,19 +61,31 @@ def intermediate_methods() -> list[str]:
     return [m for m in METHODS if is_intermediate(m)]
 
 
-def build_encoder(name: str, preset: str, bev_size_m: float = 100.0, cells: int | None = None) -> nn.Module:
+def build_encoder(name: str, preset: str, bev_size_m: float = 100.0, cells: int | None = None,
+                  image_backbone: str | None = None) -> nn.Module:
     """Encoder `name` ("pointpillars" | "sinbevt" | "lara") of `preset` -> [B, C, F, F] over bev_size_m.
 
     `cells`: the LiDAR fusion grid F (default the preset's; a zoo records its own, models.zoo.zoo_cells).
     The camera encoders' grid is fixed by their architecture (SinBEVT's output, Table A2): for them
-    `cells` must be None or their own."""
+    `cells` must be None or their own. `image_backbone`: a camera encoder's image backbone
+    (models.image_backbone; default the preset's; a zoo records its own, models.zoo.zoo_image_backbone)."""
     _check("encoder", name, ENCODERS)
     p = get_preset(preset)
     if MODALITY[name] == "lidar":
+        if image_backbone is not None:
+            raise ValueError(f"{name}: a LiDAR encoder has no image backbone (got {image_backbone!r})")
         return ENCODERS[name](preset, bev_size_m=bev_size_m, cells=cells)
     if cells not in (None, p.camera_cells):
         raise ValueError(f"{name}: a camera encoder's grid is {p.camera_cells} x {p.camera_cells}, not {cells}")
-    return ENCODERS[name](preset, bev_size_m=bev_size_m)
+    extra = {} if image_backbone is None else {"backbone": image_backbone}
+    return ENCODERS[name](preset, bev_size_m=bev_size_m, **extra)
+
+
+def preset_image_backbone(encoder: str, preset: str) -> str | None:
+    """The image backbone (models.image_backbone) of a camera encoder's `preset`; None for a LiDAR encoder."""
+    _check("encoder", encoder, ENCODERS)
+    presets = {"sinbevt": SINBEVT_PRESETS, "lara": LARA_PRESETS}.get(encoder)
+    return None if presets is None else presets[get_preset(preset).name].backbone
 
 
 def build_fusion(name: str, preset: str) -> nn.Module:
@@ -89,14 +103,14 @@ def build_heads(modality: str, preset: str, in_cells: int | None = None) -> BevH
 
 
 def build_cooperative(encoder: str, method: str, preset: str, bev_size_m: float = 100.0,
-                      cells: int | None = None) -> CooperativePerception:
+                      cells: int | None = None, image_backbone: str | None = None) -> CooperativePerception:
     """The whole model for one encoder and one of METHODS (brackets use fusion "none"); `cells`: the LiDAR
-    fusion grid (build_encoder)."""
+    fusion grid, `image_backbone`: a camera encoder's (build_encoder)."""
     _check("encoder", encoder, ENCODERS)
     _check("method", method, METHODS)
     modality = MODALITY[encoder]
     fusion = build_fusion(method if is_intermediate(method) else "none", preset)
-    enc = build_encoder(encoder, preset, bev_size_m, cells)
+    enc = build_encoder(encoder, preset, bev_size_m, cells, image_backbone)
     return CooperativePerception(enc, fusion, build_heads(modality, preset, enc.out_cells), method, modality,
                                  bev_size_m)
 

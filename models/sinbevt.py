@@ -1,15 +1,16 @@
 """SinBEVT camera encoder (CoBEVT supp. Sec. 3.1, Table A2): multi-camera images -> one agent's BEV map.
 
-    images [B, M, 3, h, w] -> resize to the preset size -> ResNet-34 layer1..3 (models/resnet.py)
+    images [B, M, 3, h, w] -> resize to the preset size -> image backbone at strides 8/16/32
+        (models/image_backbone.py: ResNet-34 layer1..3 as in Table A2, or ImageNet EfficientNet-Lite0)
     learnable BEV query Q0 [C, H0, W0]
     stages.0: FAX-CA(Q0, layer1) + 2 residual bottlenecks                   -> [B, C, H0, W0]
     stages.1: downsample, FAX-CA(., layer2) + 2 residual bottlenecks       -> [B, C, H1, W1]
     stages.2: downsample, FAX-CA(., layer3) + 2 residual bottlenecks       -> [B, C, H2, W2]
 
-Stage submodules (forward-hook names): ``resnet.layer1``, ``resnet.layer2``, ``resnet.layer3`` (outputs
-[B*M, C, h, w]) and ``stages.0``, ``stages.1``, ``stages.2`` (outputs [B, C, H, W]); ``stage_shapes()``
-reports them. Paper preset: 128x128x128 -> 64x64x128 -> 32x32x128 from 64x64x128, 32x32x256,
-16x16x512 image features of 512x512 inputs (Table A2).
+Stage submodules (forward-hook names): the backbone's three maps, e.g. ``resnet.layer1..3`` or
+``efficientnet.net._blocks.4/10/15`` (outputs [B*M, C, h, w]), and ``stages.0``, ``stages.1``, ``stages.2``
+(outputs [B, C, H, W]); ``stage_shapes()`` reports them. Paper preset: 128x128x128 -> 64x64x128 ->
+32x32x128 from 64x64x128, 32x32x256, 16x16x512 image features of 512x512 inputs (Table A2).
 
 Camera-aware positional embedding (CVT style, per stage): each feature pixel's ray direction
 K^-1 [u, v, 1] rotated to the agent frame is embedded and the camera-centre embedding subtracted;
@@ -35,7 +36,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from models.fax import FAXCrossAttention, trunc_normal_init
-from models.resnet import ResNet, record_stage_shapes
+from models.image_backbone import build_image_backbone
+from models.resnet import record_stage_shapes
 
 
 @dataclass(frozen=True)
@@ -55,6 +57,7 @@ class SinBEVTConfig:
     bottlenecks: int = 2  # residual bottleneck blocks after each FAX-CA
     cameras: int = 4  # default camera count for example inputs
     fov_deg: float = 110.0  # example-input camera field of view
+    backbone: str = "resnet"  # image backbone (models.image_backbone): "resnet" | "efficientnet_lite0"
 
 
 PRESETS: dict[str, SinBEVTConfig] = {
@@ -72,8 +75,10 @@ PRESETS: dict[str, SinBEVTConfig] = {
         feat_windows=(8, 8, 16),
     ),
     # Same architecture, narrower and smaller for CPU: 200x150 renders (800x600 * 0.25) resized to
-    # 128x128, half-width ResNet (2 blocks per stage) with features 16x16x64, 8x8x128, 4x4x256,
-    # BEV 64 -> 32 -> 32 (the last stage keeps 32 so the output is 32x32), dim 64.
+    # 128x128, ImageNet-pretrained EfficientNet-Lite0 with features 16x16x40, 8x8x112, 4x4x320 (the same
+    # strides as Table A2's ResNet-34), BEV 64 -> 32 -> 32 (the last stage keeps 32 so the output is
+    # 32x32), dim 64. backbone="resnet" is the from-scratch half-width ResNet (2 blocks per stage, features
+    # 16x16x64, 8x8x128, 4x4x256) of the first camera zoo.
     "tiny": SinBEVTConfig(
         image_size=(128, 128),
         raw_image_size=(150, 200),
@@ -85,11 +90,9 @@ PRESETS: dict[str, SinBEVTConfig] = {
         bev_sizes=(64, 32, 32),
         bev_windows=(16, 16, 32),
         feat_windows=(4, 4, 4),
+        backbone="efficientnet_lite0",
     ),
 }
-
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -268,7 +271,20 @@ class CameraEncoderIntrospection:
     `per_camera_stages`: the stage-name prefixes whose outputs are per camera ([B*M, ...]).
     """
 
-    per_camera_stages: tuple[str, ...] = ("resnet.",)
+    per_camera_extra: tuple[str, ...] = ()  # per-camera stages after the backbone
+
+    @property
+    def image_backbone(self) -> nn.Module:
+        return getattr(self, self.backbone_attr)  # type: ignore[attr-defined]
+
+    @property
+    def per_camera_stages(self) -> tuple[str, ...]:
+        return (f"{self.backbone_attr}.", *self.per_camera_extra)  # type: ignore[attr-defined]
+
+    @property
+    def stage_names(self) -> tuple[str, ...]:
+        backbone = tuple(f"{self.backbone_attr}.{n}" for n in self.image_backbone.stage_names)  # type: ignore
+        return (*backbone, *self.head_stage_names)  # type: ignore[attr-defined]
 
     def example_inputs(self, batch: int = 1, cameras: int | None = None) -> tuple[Tensor, Tensor, Tensor]:
         """Random images at the simulator's raw camera size with the default 4-camera rig."""
@@ -293,16 +309,15 @@ class SinBEVT(CameraEncoderIntrospection, nn.Module):
         cfg = config
         self.config = cfg
         self.bev_size_m = bev_size_m
-        self.resnet = ResNet(width=cfg.resnet_width, blocks=cfg.resnet_blocks)
+        self.backbone_attr, backbone = build_image_backbone(cfg.backbone, cfg.resnet_width, cfg.resnet_blocks)
+        self.add_module(self.backbone_attr, backbone)
         self.out_channels: int = cfg.dim
         self.out_cells: int = cfg.bev_sizes[-1]
-        self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
-        self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
         h0 = cfg.bev_sizes[0]
         self.bev_query = nn.Parameter(torch.randn(cfg.dim, h0, h0))  # learnable Q0 [C, H0, W0]
         stages = []
         for i in range(3):
-            feat_side = (cfg.image_size[0] // self.resnet.strides[i], cfg.image_size[1] // self.resnet.strides[i])
+            feat_side = (-(-cfg.image_size[0] // backbone.strides[i]), -(-cfg.image_size[1] // backbone.strides[i]))
             bev = cfg.bev_sizes[i]
             bev_groups = (bev // cfg.bev_windows[i]) ** 2
             feat_groups = (feat_side[0] // cfg.feat_windows[i]) * (feat_side[1] // cfg.feat_windows[i])
@@ -316,7 +331,7 @@ class SinBEVT(CameraEncoderIntrospection, nn.Module):
             stages.append(
                 SinBEVTStage(
                     cfg.dim,
-                    self.resnet.out_channels[i],
+                    backbone.out_channels[i],
                     cfg.heads,
                     cfg.mlp_dim,
                     cfg.bev_windows[i],
@@ -338,8 +353,8 @@ class SinBEVT(CameraEncoderIntrospection, nn.Module):
         b, m = images.shape[:2]
         intrinsics, extrinsics = intrinsics.to(images.dtype), extrinsics.to(images.dtype)
         images, intrinsics = resize_images(images, intrinsics, self.config.image_size)
-        x = (images.flatten(0, 1) - self.mean) / self.std  # [B*M, 3, H, W]
-        feats = self.resnet(x)  # 3 x [B*M, Ci, hi, wi]
+        x = self.image_backbone.normalise(images.flatten(0, 1))  # [B*M, 3, H, W]
+        feats = self.image_backbone(x)  # 3 x [B*M, Ci, hi, wi]
         centres = camera_centres(extrinsics)
         bev = self.bev_query[None].expand(b, -1, -1, -1)  # [B, C, H0, W0]
         for stage, f in zip(self.stages, feats, strict=True):
@@ -349,9 +364,7 @@ class SinBEVT(CameraEncoderIntrospection, nn.Module):
 
     # -- introspection --------------------------------------------------------------------------
 
-    stage_names: tuple[str, ...] = (
-        "resnet.layer1", "resnet.layer2", "resnet.layer3", "stages.0", "stages.1", "stages.2"
-    )
+    head_stage_names: tuple[str, ...] = ("stages.0", "stages.1", "stages.2")  # after the backbone's
 
 
 

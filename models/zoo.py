@@ -13,6 +13,10 @@
 the default of a new zoo); models are built at the zoo's grid (zoo_cells). An entry without it predates
 the key and was trained at 32 x 32.
 
+"image_backbone" (camera zoos): the image backbone the encoder was trained with (models.image_backbone); an
+entry without it predates the key and holds the from-scratch "resnet" zoo. Models are built with the zoo's
+backbone (zoo_image_backbone), a new zoo with the preset's.
+
 "compressors" (optional; the `compress` training stage): {"8": "compressor_r8.pt", ...}, the trained
 1 x 1 channel compressor of each ratio r (models.compression: sender C -> C/r, receiver C/r -> C), shared
 by every intermediate method (it is part of the wire message, like the float16 payload); "wire_ratio":
@@ -96,6 +100,16 @@ def zoo_cells(entry: dict | None, default: int) -> int:
     if entry is None:
         return default
     return int(entry.get("cells", LEGACY_CELLS))
+
+
+LEGACY_IMAGE_BACKBONE = "resnet"  # a camera zoo entry written before "image_backbone" was recorded
+
+
+def zoo_image_backbone(entry: dict | None) -> str | None:
+    """The image backbone a camera zoo entry was trained with; None (the preset's) when it holds no files."""
+    if entry is None or not entry.get("files"):
+        return None
+    return str(entry.get("image_backbone", LEGACY_IMAGE_BACKBONE))
 
 
 def compressor_file(entry: dict, ratio: int, root: Path, encoder: str, preset: str) -> Path | None:
@@ -186,13 +200,15 @@ def set_wire_ratio(encoder: str, preset: str, ratio: int, root: Path = WEIGHTS_D
 
 def register(path: Path, *, encoder: str, preset: str, methods: list[str], info: dict,
              root: Path = WEIGHTS_DIR, provides_encoder: bool = False, extrapolates: tuple[str, ...] = (),
-             cells: int | None = None, compresses: int | None = None, trained_wire: int | None = None) -> None:
+             cells: int | None = None, compresses: int | None = None, trained_wire: int | None = None,
+             image_backbone: str | None = None) -> None:
     """Add (or replace) a checkpoint file in the manifest, with its sha256 and size; `provides_encoder`:
     this file holds the encoder every CAV runs (the single-agent stage); `extrapolates`: methods whose
     latency-compensation add-on this file is (it then serves no method itself: pass methods=[]);
     `cells`: the LiDAR grid it was trained at (ZooError if the entry holds another grid's files);
     `compresses`: the ratio whose channel compressor this file is; `trained_wire`: the file holds `methods`
-    trained on the wire of this ratio rather than the zoo's (listed under "wire_methods", not "methods")."""
+    trained on the wire of this ratio rather than the zoo's (listed under "wire_methods", not "methods");
+    `image_backbone`: the camera image backbone it was trained with (ZooError if the entry holds another's)."""
     doc = read_manifest(root)
     entry = doc["zoos"].setdefault(zoo_name(encoder, preset), {"encoder": None, "methods": {}, "files": {}})
     if cells is not None:
@@ -201,6 +217,12 @@ def register(path: Path, *, encoder: str, preset: str, methods: list[str], info:
             raise ZooError(f"{root / MANIFEST}: {zoo_name(encoder, preset)} holds a {have} x {have} zoo; a {cells} x "
                            f"{cells} checkpoint cannot join it (train into another --out)")
         entry["cells"] = cells
+    if image_backbone is not None:
+        have_bb = zoo_image_backbone(entry) or image_backbone
+        if have_bb != image_backbone:
+            raise ZooError(f"{root / MANIFEST}: {zoo_name(encoder, preset)} holds a zoo with the {have_bb} image "
+                           f"backbone; a {image_backbone} checkpoint cannot join it (train into another --out)")
+        entry["image_backbone"] = image_backbone
     if compresses is not None:
         entry.setdefault("compressors", {})[str(compresses)] = path.name
     if provides_encoder:

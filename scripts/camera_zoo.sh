@@ -1,8 +1,10 @@
 #!/usr/bin/env bash
 # Rebuild the camera model zoo from scratch (docs/training.md, camera track): record the dataset with
-# cameras, then train every SinBEVT stage and LaRa's `none` and `cobevt` into models/weights/. Each step
-# resumes where it stopped if re-run.
-#   scripts/camera_zoo.sh [DATA_DIR] [WORK_DIR] [ZOO_DIR]
+# cameras, then train every SinBEVT stage and LaRa's `none` and `cobevt` into models/weights/. The encoders
+# start from the ImageNet EfficientNet-Lite0 of the tiny preset (models/image_backbone.py); a ZOO_DIR whose
+# camera zoo has another image backbone is refused (train into a new directory, then replace the old zoo).
+# Each step resumes where it stopped if re-run.
+#   scripts/camera_zoo.sh [DATA_DIR] [WORK_DIR] [ZOO_DIR]      (N_SEEDS=10: training seeds per network)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DATA=${1:-data/camera}
@@ -10,7 +12,7 @@ WORK=${2:-runs/train_camera}
 ZOO=${3:-models/weights}
 V=${V2VSIM:-v2vsim}
 # "visible" means seen by a camera: the dataset's visibility masks follow the cameras, not the LiDAR.
-scripts/zoo_data.sh "$DATA" 10 --cameras --set perception.modality=camera --set perception.encoder=sinbevt
+scripts/zoo_data.sh "$DATA" "${N_SEEDS:-10}" --cameras --set perception.modality=camera --set perception.encoder=sinbevt
 # A camera zoo has no `early` stage (early fusion ships LiDAR points); DiscoNet trains without its teacher.
 # The single-agent stages run 6 epochs (3 left them short of convergence: docs/training.md, "The camera track").
 $V train --data "$DATA" --encoder sinbevt --stage single --epochs 6 --out "$ZOO" --work "$WORK/sinbevt" --resume

@@ -1,32 +1,25 @@
 #!/usr/bin/env bash
 # Evaluate the shipped camera zoo on held-out seeds (never used in training or validation):
-# scenarios/intersection_camera.yaml and the T-junction with the same camera settings,
-# SinBEVT (every method) and LaRa (none, late, cobevt), 200 frames. Prints the tables of docs/results.md.
-#   scripts/eval_camera_zoo.sh [OUT_DIR] [SEEDS...]      (defaults: runs/eval_camera, seeds 0 1)
-# CHANNELS="ideal default" (the default: ideal only) adds the channel as shipped (27 Mbps: one frame late);
-# ENCODERS="sinbevt" (the default: "sinbevt lara") evaluates one encoder.
+# scenarios/intersection_camera.yaml and the T-junction with the same camera settings, SinBEVT (every camera
+# method) and LaRa (none, late, cobevt), 200 frames, the channel as shipped (27 Mbps) and the ideal channel (no
+# bandwidth limit), with `v2vsim sweep` so that every method's difference to `none` (and CoBEVT's to every
+# method) has its paired 95 % bootstrap interval over the seeds (OUT/<scenario>_<encoder>/sweep.md). Resumable.
+# Then prints the table of docs/results.md (scripts/zoo_table.py over every run).
+#   scripts/eval_camera_zoo.sh [OUT_DIR] [SEEDS]      (defaults: runs/eval_camera, seeds 0-3; SEEDS as A-B or A)
+# ENCODERS="sinbevt" (the default: "sinbevt lara") evaluates one encoder; CHANNELS="null" the ideal channel only.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${1:-runs/eval_camera}
-shift || true
-SEEDS=${*:-0 1}
+SEEDS=${2:-0-3}
 V=${V2VSIM:-v2vsim}
-CAMERA=(--set perception.modality=camera --set output.rerun=false)
-dirs=()
 for enc in ${ENCODERS:-sinbevt lara}; do
   methods=$([ $enc = lara ] && echo none,late,cobevt || echo none,late,attfuse,fcooper,v2vnet,disconet,cobevt)
   for sc in intersection t_junction; do
     yaml=scenarios/$sc.yaml
     [ $sc = intersection ] && yaml=scenarios/intersection_camera.yaml
-    for seed in $SEEDS; do
-      for channel in ${CHANNELS:-ideal}; do
-        bw=$([ "$channel" = ideal ] && echo null || echo 27)
-        d="$OUT/${sc}_${enc}_s${seed}_${channel}"
-        $V run $yaml --frames 200 --out "$d" --methods $methods --set seed=$seed \
-          --set perception.encoder=$enc --set comm.bandwidth_mbps=$bw "${CAMERA[@]}"
-        dirs+=("$d")
-      done
-    done
+    $V sweep $yaml --grid comm.bandwidth_mbps=${CHANNELS:-27,null} --seeds "$SEEDS" --frames 200 \
+      --methods $methods --set perception.modality=camera --set perception.encoder=$enc \
+      --set output.rerun=false --out "$OUT/${sc}_$enc"
   done
 done
-python scripts/zoo_table.py "${dirs[@]}"
+python scripts/zoo_table.py "$OUT"/*/runs/*/seed*

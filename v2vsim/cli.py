@@ -11,6 +11,8 @@ from pathlib import Path
 
 from v2vsim.config import ConfigError, check_output_dir, load_scenario
 
+IMAGE_BACKBONE_KINDS = ("resnet", "efficientnet_lite0")
+
 _RUN_ID = re.compile(r"[A-Za-z0-9_.-]{1,64}")  # a zenoh key chunk (v2vsim/<run>/<kind>/<sender>)
 
 
@@ -20,10 +22,22 @@ def _scenario_args(p: argparse.ArgumentParser) -> None:
                    help="override a scenario key, e.g. --set comm.drop.p=0.3 (repeatable)")
 
 
+def _method_names(value: str | None) -> str | None:
+    """--methods "a, b" -> "a,b" (None when not given); ConfigError when it names no method (an empty --methods
+    used to run every method). The names themselves are checked with the scenario (perception.methods)."""
+    if value is None:
+        return None
+    names = [m.strip() for m in value.split(",") if m.strip()]
+    if not names:
+        raise ConfigError(f"--methods {value!r}: names no method; expected comma-separated methods, e.g. none,cobevt")
+    return ",".join(names)
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
     overrides = list(args.overrides)
-    if args.methods:
-        overrides.append(f"perception.methods=[{args.methods}]")
+    methods = _method_names(args.methods)
+    if methods:
+        overrides.append(f"perception.methods=[{methods}]")
     scenario = load_scenario(args.scenario, overrides)  # validate before the heavy imports
     if args.frames is not None and args.frames < 1:  # 0 used to mean "the whole duration", -1 "nothing"
         raise ConfigError(f"--frames {args.frames}: expected a number of frames >= 1 "
@@ -112,7 +126,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
             return 2
     targs = TrainArgs(data=Path(args.data), stage=args.stage, out=Path(args.out), work=Path(args.work),
                       encoder=args.encoder, preset=args.preset, cells=args.cells, bf16=args.bf16,
-                      wire_ratio=args.wire_ratio, **extra,
+                      wire_ratio=args.wire_ratio, image_backbone=args.image_backbone, **extra,
                       device=args.device, threads=args.threads, seed=args.seed, resume=args.resume,
                       val_every=args.val_every, workers=args.workers,
                       overrides=tuple(overrides.items()), command=command_line(sys.argv[2:]))
@@ -123,9 +137,11 @@ def _cmd_train(args: argparse.Namespace) -> int:
             print("v2vsim: error: --device cuda: no CUDA device here (this torch build: "
                   f"{torch.__version__}); use --device cpu", file=sys.stderr)
             return 2
+    from models.efficientnet_lite import PretrainedWeightsMissing
+
     try:
         return main_train(targs)
-    except (ValueError, DatasetError) as e:
+    except (ValueError, DatasetError, PretrainedWeightsMissing) as e:
         print(f"v2vsim: error: {e}", file=sys.stderr)
         return 2
 
@@ -149,7 +165,8 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     from v2vsim.study.sweep import SweepArgs, sweep
 
     return sweep(SweepArgs(scenario=Path(args.scenario), grid=tuple(args.grid), seeds=args.seeds, out=Path(args.out),
-                           frames=args.frames, jobs=args.jobs, overrides=tuple(args.overrides), methods=args.methods,
+                           frames=args.frames, jobs=args.jobs, overrides=tuple(args.overrides),
+                           methods=_method_names(args.methods),
                            bootstrap=args.bootstrap, engine=args.engine, scheduler=args.scheduler))
 
 
@@ -164,7 +181,7 @@ def _cmd_bandwidth(args: argparse.Namespace) -> int:
         return 2
     if args.frames < 1:
         raise ConfigError(f"--frames {args.frames}: expected a number of frames >= 1")
-    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    methods = str(_method_names(args.methods)).split(",")
     overrides = dict(o.split("=", 1) for o in args.overrides if "=" in o)
     bad = [o for o in args.overrides if "=" not in o]
     if bad:
@@ -279,6 +296,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="an intermediate fusion stage: train it on the ratio-R wire instead of the zoo's (its own "
                         "checkpoint <method>_r<R>.pt, loaded by runs with comm.channel_compression: R; 1: "
                         "uncompressed); docs/training.md")
+    # the kinds of models.image_backbone.IMAGE_BACKBONES (named here: the CLI imports no torch to parse)
+    p.add_argument("--image-backbone", default=None, choices=IMAGE_BACKBONE_KINDS,
+                   help="a camera encoder's image backbone (default: the --out zoo's, else the preset's: "
+                        "ImageNet EfficientNet-Lite0 for tiny); models/image_backbone.py")
     p.set_defaults(func=_cmd_train)
 
     p = sub.add_parser("sweep", help="run a scenario over a grid of overrides x seeds: sweep.csv/json/md, plots "

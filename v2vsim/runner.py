@@ -22,6 +22,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import dataclasses
+import json
 import os
 import re
 import signal
@@ -39,7 +40,7 @@ from agents.progress import ENV as PROGRESS_ENV
 from agents.progress import ProgressDisplay, parse_record
 from v2vsim.comm.transport import TransportError, free_ports, loopback_endpoint, open_session
 from v2vsim.config import ConfigError, Scenario, check_output_dir
-from v2vsim.perception.build import check_scenario
+from v2vsim.perception.build import check_scenario, runnable_methods
 from v2vsim.sensors.sensing import ego_ids
 from v2vsim.traffic.base import cav_id
 
@@ -124,8 +125,13 @@ def run(sc: Scenario, out: Path, frames: int | None = None, remote_cavs: tuple[s
         return 2
     procs = ["driver.main"] + [f"cav.{c}" for c in cavs if c not in remote_cavs] + [f"ego.{e}" for e in egos]
     overrides = _overrides_for_children(sc)
+    runnable = runnable_methods(sc)
     print(f"v2vsim: run {run_id}: {len(cavs)} CAVs, ego {', '.join(egos)}, {frames} frames, "
-          f"methods {', '.join(sc.perception.methods)} -> {out}", file=sys.stderr)
+          f"methods {', '.join(runnable)} -> {out}", file=sys.stderr)
+    dropped = [m for m in sc.perception.methods if m not in runnable]
+    if dropped:
+        print(f"v2vsim: note: {', '.join(dropped)} left out: early fusion ships LiDAR points and this run's "
+              f"modality is {sc.perception.modality}", file=sys.stderr)
     if remote_cavs:
         print("v2vsim: waiting for remote CAVs; on their hosts run:", file=sys.stderr)
         for c in remote_cavs:
@@ -134,6 +140,7 @@ def run(sc: Scenario, out: Path, frames: int | None = None, remote_cavs: tuple[s
                   file=sys.stderr)
     display = ProgressDisplay(frames, sc.rate_hz, [f"ego.{e}" for e in egos])
     children: list[Child] = []
+    failures: list[str] = []  # why the run failed, as said on the terminal
     interrupted = False
     code = 1
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
@@ -144,7 +151,7 @@ def run(sc: Scenario, out: Path, frames: int | None = None, remote_cavs: tuple[s
             children = []
             _start(children, sc, procs, endpoints, picked, overrides, run_id, cavs, egos, frames, out, display)
             try:
-                code = _watch(children, display)
+                code = _watch(children, display, failures)
                 break
             except PortRace as race:
                 _kill_quietly(children)
@@ -165,6 +172,8 @@ def run(sc: Scenario, out: Path, frames: int | None = None, remote_cavs: tuple[s
         _stop_all(children)
         display.close()
         signal.signal(signal.SIGTERM, previous)
+    if code not in (0, 130):
+        _write_failure_metrics(out, sc, egos, failures)
     if not interrupted and code == 0:
         report = out / "report.md"
         if report.is_file():
@@ -246,6 +255,23 @@ def _overrides_for_children(sc: Scenario) -> list[str]:
     return list(sc.overrides)
 
 
+def _write_failure_metrics(out: Path, sc: Scenario, egos: list[str], failures: list[str]) -> None:
+    """A run that failed before an ego wrote its results (the ego killed, a crash before it started) still
+    leaves metrics.json, with the contract's keys empty and `status` saying what happened, so that a sweep or
+    a script reading the folder sees why instead of nothing."""
+    why = "; ".join(failures) or "the run failed"
+    for e in egos:
+        folder = out / ("" if e == egos[0] else f"ego_{e}")
+        if (folder / "metrics.json").exists():
+            continue
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / "metrics.json").write_text(json.dumps({
+            "scenario": sc.name, "seed": sc.seed, "overrides": list(sc.overrides), "frames": 0,
+            "cavs": sc.cavs.count, "modality": sc.perception.modality, "real_time_factor": None, "comm": {},
+            "methods": {}, "ego": e, "status": f"failed: {why} (no results; written by the runner)",
+            "encoder": sc.perception.encoder, "preset": sc.perception.preset}, indent=2))
+
+
 def _describe(name: str, rc: int) -> str:
     """How a child ended, for the run's error line."""
     who = "the simulator driver" if name == "driver.main" else name
@@ -263,9 +289,9 @@ def _signame(n: int) -> str:
         return ""
 
 
-def _watch(children: list[Child], display: ProgressDisplay) -> int:
-    """Wait for the egos to finish; fail fast when the driver or an ego fails; raise PortRace when
-    a child could not listen on a port the runner picked."""
+def _watch(children: list[Child], display: ProgressDisplay, failures: list[str]) -> int:
+    """Wait for the egos to finish; fail fast when the driver or an ego fails (why: appended to `failures`);
+    raise PortRace when a child could not listen on a port the runner picked."""
     driver = next(c for c in children if c.name == "driver.main")
     egos = [c for c in children if c.name.startswith("ego.")]
     while True:
@@ -277,7 +303,8 @@ def _watch(children: list[Child], display: ProgressDisplay) -> int:
         failed = [(c, codes[c.name]) for c in [driver, *egos] if codes[c.name] not in (None, 0)]
         if failed:
             for c, rc in failed:
-                display.message(f"v2vsim: error: {_describe(c.name, rc)}")  # type: ignore[arg-type]
+                failures.append(_describe(c.name, rc))  # type: ignore[arg-type]
+                display.message(f"v2vsim: error: {failures[-1]}")
             if codes[driver.name] not in (None, 0) and display.started:
                 _wait_exit(egos, EGO_NOTICE_S)  # the egos write why they stopped, then exit
             rc = failed[0][1]
@@ -289,7 +316,8 @@ def _watch(children: list[Child], display: ProgressDisplay) -> int:
             # A CAV killed by a signal is a dead agent the ego copes with; one that exits with an
             # error is a failure to report (it would otherwise leave the driver waiting for it).
             if c.name.startswith("cav.") and rc is not None and 0 < rc < 128:
-                display.message(f"v2vsim: error: {_describe(c.name, rc)}")
+                failures.append(_describe(c.name, rc))
+                display.message(f"v2vsim: error: {failures[-1]}")
                 return 2 if rc == 2 else 1
         time.sleep(0.2)
 

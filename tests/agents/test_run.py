@@ -168,8 +168,10 @@ def test_the_camera_scenario_runs_its_shipped_zoo(tmp_path: Path) -> None:
     out = tmp_path / "cam"
     r = subprocess.run([sys.executable, "-m", "v2vsim.cli", "run", str(REPO / "scenarios" / "intersection_camera.yaml"),
                         "--frames", "2", "--out", str(out), "--set", "cavs.count=2", "--set", "comm.range_m=300",
-                        "--set", "output.rerun=false"], capture_output=True, text=True, timeout=300, cwd=REPO)
+                        "--set", "output.rerun=false", "--methods", "none,late,early,attfuse,fcooper,v2vnet,disconet,"
+                        "cobevt"], capture_output=True, text=True, timeout=300, cwd=REPO)
     assert r.returncode == 0, r.stderr
+    assert "note: early left out: early fusion ships LiDAR points" in r.stderr  # said on the terminal too
     m = _metrics(out)
     assert m["modality"] == "camera" and m["encoder"] == "sinbevt" and m["comm"]["delivered"] == 2
     assert list(m["methods"]) == ["none", "late", "attfuse", "fcooper", "v2vnet", "disconet", "cobevt"]
@@ -266,6 +268,21 @@ def test_killed_driver_is_reported_and_every_process_stops(tmp_path: Path) -> No
     assert not alive, f"orphans: {alive}"
     status = json.loads((out / "metrics.json").read_text())["status"]  # the ego still wrote what it had
     assert status.startswith("driver died after frame"), status  # and says why it stopped
+
+
+def test_killed_ego_leaves_a_metrics_json_that_says_so(tmp_path: Path) -> None:
+    """issue 34 item 9: a SIGKILLed ego writes nothing; the runner writes metrics.json with why."""
+    out = tmp_path / "run"
+    run = Run("--frames", "400", "--out", str(out), "--set", "cavs.count=2", "--methods", "none",
+              "--set", "output.rerun=false")
+    run.wait_frames(2)
+    egos = _agents(run, "agents.ego")
+    assert len(egos) == 1
+    egos[0].send_signal(signal.SIGKILL)
+    assert run.finish(timeout=60) == 1, "".join(run.log)
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["status"].startswith("failed: ego.cav0 died (signal 9, SIGKILL)"), m["status"]
+    assert m["methods"] == {} and m["frames"] == 0 and m["scenario"] == "intersection"
 
 
 def test_a_port_taken_after_planning_is_replanned(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,

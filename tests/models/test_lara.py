@@ -13,7 +13,8 @@ from models.lara import BevLatentCrossAttention, build_lara, fourier_encode
 from models.sinbevt import default_camera_rig
 from v2vsim.world.geometry import BevGrid
 
-SMALL = dict(
+SMALL = dict(  # the architecture at test size, on the small from-scratch ResNet
+    backbone="resnet",
     image_size=(64, 64),
     resnet_width=0.25,
     resnet_blocks=(1, 1, 1, 1),

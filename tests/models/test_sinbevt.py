@@ -21,7 +21,8 @@ from models.sinbevt import (
 from v2vsim.world.geometry import BevGrid
 
 # a SinBEVT small enough to train in a test: 64x64 images, features 8/4/2, BEV 32 -> 16 -> 16
-SMALL = dict(
+SMALL = dict(  # the architecture at test size, on the small from-scratch ResNet
+    backbone="resnet",
     image_size=(64, 64),
     resnet_width=0.25,
     resnet_blocks=(1, 1, 1, 1),
@@ -70,8 +71,13 @@ def test_tiny_preset_from_raw_camera_size() -> None:
         y = m(images, intr, extr)
     assert y.shape == (2, m.out_channels, m.out_cells, m.out_cells) == (2, 64, 32, 32)
     assert torch.isfinite(y).all()
-    names = [n for n, _ in m.stage_shapes()]
-    assert names == ["resnet.layer1", "resnet.layer2", "resnet.layer3", "stages.0", "stages.1", "stages.2"]
+    shapes = m.stage_shapes()  # ImageNet EfficientNet-Lite0 at strides 8/16/32 (models/image_backbone.py)
+    assert shapes[:3] == [("efficientnet.net._blocks.4", (1, 4, 40, 16, 16)),
+                          ("efficientnet.net._blocks.10", (1, 4, 112, 8, 8)),
+                          ("efficientnet.net._blocks.15", (1, 4, 320, 4, 4))]
+    assert [n for n, _ in shapes[3:]] == ["stages.0", "stages.1", "stages.2"]
+    legacy = build_sinbevt("tiny", backbone="resnet")  # the first camera zoo's from-scratch encoder
+    assert [n for n, _ in legacy.stage_shapes()][:3] == ["resnet.layer1", "resnet.layer2", "resnet.layer3"]
 
 
 def test_samples_independent_and_geometry_used() -> None:

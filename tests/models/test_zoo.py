@@ -105,3 +105,25 @@ def test_a_camera_checkpoint_names_the_camera_rebuild_command() -> None:
         cmd = zoo.rebuild_command(zoo.WEIGHTS_DIR / f"{encoder}_tiny" / "cobevt.pt", entry)
         assert cmd.startswith(whole) and "--stage cobevt" in cmd, cmd
         assert ("--encoder" in cmd) == (encoder != "pointpillars"), cmd
+
+
+def test_a_camera_zoo_records_its_image_backbone(tmp_path) -> None:
+    """A camera zoo builds the backbone it was trained with: an entry without "image_backbone" is the first,
+    from-scratch ResNet zoo; a checkpoint of another backbone cannot join a zoo."""
+    assert zoo.zoo_image_backbone(None) is None  # no zoo: the preset's
+    assert zoo.zoo_image_backbone({"files": {}}) is None
+    assert zoo.zoo_image_backbone({"files": {"single.pt": {}}}) == "resnet"
+    path = tmp_path / "sinbevt_tiny" / "single.pt"
+    zoo.save_checkpoint(path, {"encoder.x": torch.zeros(1)}, encoder="sinbevt", preset="tiny", stage="single",
+                        methods=["none"], config={})
+    zoo.register(path, encoder="sinbevt", preset="tiny", methods=["none"], info={}, root=tmp_path,
+                 provides_encoder=True, image_backbone="efficientnet_lite0")
+    entry = zoo.zoo_entry("sinbevt", "tiny", tmp_path)
+    assert zoo.zoo_image_backbone(entry) == "efficientnet_lite0"
+    with pytest.raises(zoo.ZooError, match="efficientnet_lite0 image backbone; a resnet checkpoint"):
+        zoo.register(path, encoder="sinbevt", preset="tiny", methods=["none"], info={}, root=tmp_path,
+                     image_backbone="resnet")
+    enc = build_agent_encoder(load_scenario("scenarios/intersection_camera.yaml",
+                                            [f"perception.weights={zoo.WEIGHTS_DIR}"]))
+    shipped = zoo.zoo_image_backbone(zoo.zoo_entry("sinbevt", "tiny"))
+    assert enc.config.backbone == shipped and enc.backbone_attr == {"resnet": "resnet"}.get(shipped, "efficientnet")

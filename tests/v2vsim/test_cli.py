@@ -44,6 +44,12 @@ def _one_line_exit_2(argv: list[str], capsys: pytest.CaptureFixture[str], *expec
     (["--set", "comm.channel_compression=16"], ["comm.channel_compression: 16", "trained on the ratio-8 wire",
                                                 "--wire-ratio 16"]),
     (["--set", "comm.fusion_deadline_ms=100"], ["comm.fusion_deadline_ms", "less than one frame"]),
+    # a relative perception.weights is resolved against the scenario's folder: the error says so
+    (["--set", "perception.weights=my_zoo"], ["perception.weights", "resolved against the scenario's folder",
+                                              "absolute path"]),
+    # an empty --methods used to run all eight methods, exit 0; ",," was echoed as perception.methods=[,,]
+    (["--methods", ""], ["--methods ''", "names no method", "none,cobevt"]),
+    (["--methods", ",,"], ["--methods ',,'", "names no method"]),
 ])
 def test_run_refuses_bad_arguments(args: list[str], expect: list[str], tmp_path: Path,
                                    capsys: pytest.CaptureFixture[str]) -> None:
@@ -126,3 +132,9 @@ def test_sigint_stops_a_verb_started_with_sigint_ignored() -> None:
         assert proc.wait(timeout=15) != 0
     finally:
         proc.kill()
+
+
+def test_sweep_refuses_an_empty_methods(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    _one_line_exit_2(["sweep", SCENARIO, "--seeds", "0", "--methods", " , ", "--out", str(tmp_path / "s")], capsys,
+                     "--methods ' , '", "names no method")
+    assert not (tmp_path / "s").exists()

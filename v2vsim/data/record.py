@@ -10,6 +10,7 @@ from __future__ import annotations
 import gzip
 import json
 import multiprocessing
+import re
 import subprocess
 import sys
 import time
@@ -163,11 +164,40 @@ def _run_traffic(scenario_path: str, seed: int, frames: int, out: Path, override
     return sc, run_dir, worlds
 
 
+SENSING_FILE = "sensing.json"  # <run>/sensing.json: what the frames on disk were sensed with
+
+
+def _prepare_sensing(run_dir: Path, cameras: bool, overrides: tuple[str, ...]) -> int:
+    """Before sensing a run: frames already written with the same settings and traffic (an interrupted command
+    run again) are kept and skipped; frames of other settings are removed. Returns the frames kept."""
+    traffic = run_dir / TRAFFIC_DIR / "traffic.json"
+    want = {"cameras": cameras, "overrides": list(overrides),
+            "traffic": json.loads(traffic.read_text()) if traffic.is_file() else None}
+    marker = run_dir / SENSING_FILE
+    try:
+        same = json.loads(marker.read_text()) == want
+    except (OSError, ValueError):
+        same = False
+    frames = sorted(run_dir.glob("f[0-9][0-9][0-9][0-9][0-9].npz"))
+    if not same:
+        for f in frames:
+            f.unlink()
+        marker.write_text(json.dumps(want))
+        return 0
+    return len(frames)
+
+
 def _sense_frames(sc: Scenario, run_dir: Path, worlds: list[WorldState], ks: range, cameras: bool,
                   progress=None) -> None:
-    """Sense and write frames `ks` of a run. `progress(k)` is called after each frame written."""
-    assets = build_map_assets(worlds[0].static)
+    """Sense and write frames `ks` of a run, skipping those already written (kept by _prepare_sensing).
+    `progress(k)` is called after each frame written or found."""
+    assets = None
     for k in ks:
+        if frame_path(run_dir, k).is_file():
+            if progress is not None:
+                progress(k)
+            continue
+        assets = assets or build_map_assets(worlds[0].static)
         arrays = record_frame(worlds[k], sc, assets, cameras)
         tmp = run_dir / f".f{k:05d}.tmp.npz"
         np.savez_compressed(tmp, **arrays)
@@ -192,6 +222,7 @@ def record_run(scenario_path: str, seed: int, frames: int, out: Path, overrides:
     sc, run_dir, worlds = _run_traffic(scenario_path, seed, frames, out, overrides)
     if traffic_only:
         return len(worlds)
+    _prepare_sensing(run_dir, cameras, sc.overrides)
     _sense_frames(sc, run_dir, worlds, range(len(worlds)), cameras, progress)
     _write_run_json(sc, run_dir, len(worlds), cameras)
     return len(worlds)
@@ -213,7 +244,21 @@ def _sense_job(job: tuple) -> tuple[int, int]:
     return seed, min(hi, len(worlds)) - lo
 
 
+RUN_DIR = re.compile(r".+_s[0-9]+")  # run_name(scenario, seed)
 SENSE_CHUNK = 25  # frames per parallel sensing task: each task builds the map assets once
+
+
+def check_dataset_folder(out: Path) -> None:
+    """`out` is new, empty, a dataset (manifest.json) or holds only run folders (a --traffic-only call's):
+    anything else is refused rather than getting a manifest among unrelated files."""
+    if out.exists() and not out.is_dir():
+        raise DatasetError(f"--out {out}: is a file, not a folder")
+    if not out.is_dir() or (out / "manifest.json").exists():
+        return
+    other = sorted(p.name for p in out.iterdir() if not (p.is_dir() and RUN_DIR.fullmatch(p.name)))
+    if other:
+        raise DatasetError(f"--out {out}: not empty and not a dataset (no manifest.json; it holds "
+                           f"{', '.join(other[:3])}{', ...' if len(other) > 3 else ''}); use a new or empty folder")
 
 
 def record_dataset(scenario_path: str, seeds: list[int], frames: int, out: Path, split: str = "train",
@@ -231,6 +276,7 @@ def record_dataset(scenario_path: str, seeds: list[int], frames: int, out: Path,
         raise DatasetError(f"--frames {frames}: must be >= 1")
     if jobs < 1:
         raise DatasetError(f"--jobs {jobs}: must be >= 1")
+    check_dataset_folder(out)
     out.mkdir(parents=True, exist_ok=True)
     base = load_scenario(scenario_path, overrides)
     doc = read_manifest(out) if (out / "manifest.json").exists() else {
@@ -280,6 +326,9 @@ def record_dataset(scenario_path: str, seeds: list[int], frames: int, out: Path,
                 show("traffic")
             else:
                 total = sum(lengths.values())
+                for s in todo:  # keep what an interrupted call wrote with the same settings
+                    sc = load_scenario(scenario_path, (*overrides, f"seed={s}"))
+                    _prepare_sensing(out / run_name(sc.name, s), cameras, sc.overrides)
                 jobs_ = [(scenario_path, s, frames, out, overrides, cameras, lo, lo + SENSE_CHUNK)
                          for s in todo for lo in range(0, lengths[s], SENSE_CHUNK)]
                 for fut in as_completed([pool.submit(_sense_job, j) for j in jobs_]):

@@ -36,10 +36,13 @@ def zoo_for(sc: Scenario) -> tuple[Path, dict] | None:
     root = zoo.WEIGHTS_DIR
     if spec != "auto":
         root = Path(spec)
-        if not root.is_absolute():
+        relative = not root.is_absolute()
+        if relative:
             root = Path(sc.source).parent / root
         if not (root / "manifest.json").is_file():
-            raise ConfigError(f"{sc.source}: perception.weights: no zoo manifest at {root / 'manifest.json'}; "
+            how = (f" ({spec!r} is relative, so it is resolved against the scenario's folder "
+                   f"{Path(sc.source).parent}, not the working directory; give an absolute path)" if relative else "")
+            raise ConfigError(f"{sc.source}: perception.weights: no zoo manifest at {root / 'manifest.json'}{how}; "
                               "allowed: 'auto', 'none' or a folder written by `v2vsim train --out`")
     try:
         entry = zoo.zoo_entry(sc.perception.encoder, sc.perception.preset, root)
@@ -134,6 +137,15 @@ def fusion_cells(sc: Scenario) -> int | None:
     return zoo.zoo_cells(None if z is None else z[1], get_preset(sc.perception.preset).cells)
 
 
+def image_backbone(sc: Scenario) -> str | None:
+    """A camera encoder's image backbone: its zoo's (models.zoo.zoo_image_backbone; the first camera zoo's
+    is "resnet"), the preset's (None) with random weights or for a LiDAR encoder."""
+    if MODALITY[sc.perception.encoder] != "camera":
+        return None
+    z = zoo_for(sc)
+    return zoo.zoo_image_backbone(None if z is None else z[1])
+
+
 def wire_ratio(sc: Scenario) -> int:
     """The channel compression ratio r of the feature messages: comm.channel_compression, or where it is
     null the zoo's wire ratio (models.zoo.wire_ratio; 1 with random weights or a zoo without compressors)."""
@@ -146,7 +158,8 @@ def wire_ratio(sc: Scenario) -> int:
 def build_agent_encoder(sc: Scenario) -> nn.Module:
     """The encoder every CAV runs; identical in every process for a given scenario."""
     _seed(sc, "encoder")
-    enc = build_encoder(sc.perception.encoder, sc.perception.preset, bev_size_m=sc.bev.size_m, cells=fusion_cells(sc))
+    enc = build_encoder(sc.perception.encoder, sc.perception.preset, bev_size_m=sc.bev.size_m, cells=fusion_cells(sc),
+                        image_backbone=image_backbone(sc))
     _load(enc, _states(sc, ("encoder",))["encoder"], "encoder.", sc, "encoder")
     return enc.eval()
 
@@ -225,12 +238,12 @@ def decompress(comp: ChannelCompressor | None, payload: np.ndarray) -> np.ndarra
 
 def build_method_models(sc: Scenario, encoder: nn.Module, methods: tuple[str, ...]) -> dict[str, nn.Module]:
     """One CooperativePerception per method, all sharing `encoder` (every method fuses the same messages)."""
-    states, cells = _states(sc, methods), fusion_cells(sc)
+    states, cells, backbone = _states(sc, methods), fusion_cells(sc), image_backbone(sc)
     out = {}
     for m in methods:
         _seed(sc, f"method:{m}")
         model = build_cooperative(sc.perception.encoder, m, sc.perception.preset, bev_size_m=sc.bev.size_m,
-                                  cells=cells)
+                                  cells=cells, image_backbone=backbone)
         state = states[m]
         if m == "early":  # early fusion's encoder runs at the ego on merged clouds: its own weights
             _load(model.encoder, state, "encoder.", sc, m)

@@ -13,9 +13,10 @@ from torch import nn
 
 from models import zoo
 from models.compression import ChannelCompressor
+from models.cooperative import CooperativePerception
 from models.extrapolation import FeatureExtrapolation
 from models.presets import get_preset
-from models.registry import MODALITY, build_cooperative
+from models.registry import MODALITY, build_cooperative, preset_image_backbone
 from v2vsim.data.layout import DatasetError
 
 FUSION_STAGES = ("attfuse", "fcooper", "v2vnet", "cobevt", "disconet")
@@ -31,6 +32,9 @@ WIRE_RATIO = 8
 # an add-on, run on its own (`--stage extrapolate`), not part of `all`.
 EXTRAPOLATE = "extrapolate"
 EXTRA_STAGES = (EXTRAPOLATE,)
+# A pretrained image backbone (models.image_backbone) fine-tunes at this fraction of the stage's learning rate,
+# so that the first steps of the randomly initialised BEV layers above it do not wash out its ImageNet features.
+PRETRAINED_LR_SCALE = 0.1
 
 
 @dataclass(frozen=True)
@@ -104,6 +108,7 @@ class TrainArgs:
     ratios: tuple[int, ...] = COMPRESS_RATIOS  # `compress` stage
     bf16: bool = False  # bfloat16 autocast in the forward pass (CPU with AMX, or CUDA)
     wire_ratio: int | None = None  # fusion stages: read the neighbours through this ratio's wire (1: uncompressed)
+    image_backbone: str | None = None  # camera encoders (default: the --out zoo's, else the preset's)
 
 
 # ---- models per stage ----------------------------------------------------------------------------
@@ -122,10 +127,35 @@ def train_cells(args: TrainArgs) -> int | None:
     return args.cells or zoo.zoo_cells(entry, get_preset(args.preset).cells)
 
 
+def train_image_backbone(args: TrainArgs) -> str | None:
+    """A camera encoder's image backbone in this training: --image-backbone, else the --out zoo's (a stage joins
+    that zoo), else the preset's; None for a LiDAR encoder."""
+    if MODALITY[args.encoder] != "camera":
+        if args.image_backbone is not None:
+            raise ValueError(f"--image-backbone {args.image_backbone}: {args.encoder} is a LiDAR encoder")
+        return None
+    return (args.image_backbone or zoo.zoo_image_backbone(zoo.zoo_entry(args.encoder, args.preset, args.out))
+            or preset_image_backbone(args.encoder, args.preset))
+
+
+def build_training_model(args: TrainArgs, method: str) -> CooperativePerception:
+    """`method`'s model at this training's grid and image backbone, seeded."""
+    torch.manual_seed(args.seed)
+    return build_cooperative(args.encoder, method, args.preset, cells=train_cells(args),
+                             image_backbone=train_image_backbone(args))
+
+
 def check_zoo_grid(args: TrainArgs) -> None:
     """Before training: a --cells that differs from the --out zoo's grid would be refused at export."""
     entry = zoo.zoo_entry(args.encoder, args.preset, args.out)
-    if entry is None or MODALITY[args.encoder] != "lidar" or not entry.get("files"):
+    if entry is None or not entry.get("files"):
+        return
+    if MODALITY[args.encoder] == "camera":
+        have_bb = zoo.zoo_image_backbone(entry)
+        if args.image_backbone and args.image_backbone != have_bb:
+            name = zoo.zoo_name(args.encoder, args.preset)
+            raise DatasetError(f"--image-backbone {args.image_backbone}: the zoo at {args.out} ({name}) was trained "
+                               f"with the {have_bb} backbone; train a {args.image_backbone} zoo into another --out")
         return
     have = zoo.zoo_cells(entry, 0)
     if args.cells and args.cells != have:
@@ -204,8 +234,7 @@ def build_extrapolation_model(args: TrainArgs, spec: StageSpec) -> nn.Module:
     """The zoo's (--out) model of spec.methods[0] with a fresh FeatureExtrapolation as `.extrapolation`; its
     encoder keeps its seeded initial weights (the stage reads the feature cache, never runs it)."""
     (method,) = spec.methods
-    torch.manual_seed(args.seed)
-    model = build_cooperative(args.encoder, method, args.preset, cells=train_cells(args))
+    model = build_training_model(args, method)
     state = zoo_state(args, method)
     model.fusion.load_state_dict(_prefixed(state, "fusion."))
     model.heads.load_state_dict(_prefixed(state, "heads."))
@@ -217,8 +246,10 @@ def build_stage_model(args: TrainArgs, spec: StageSpec) -> nn.Module:
     if spec.name == EXTRAPOLATE:
         return build_extrapolation_model(args, spec)
     method = "none" if spec.name in ("single", COMPRESS) else spec.name
-    torch.manual_seed(args.seed)
-    model = build_cooperative(args.encoder, method, args.preset, cells=train_cells(args))
+    model = build_training_model(args, method)
+    backbone = getattr(model.encoder, "image_backbone", None)
+    if spec.name == "single" and backbone is not None and backbone.pretrained:
+        backbone.load_pretrained()  # the single-agent stage fine-tunes it (a resumed run's last.pt replaces it)
     if spec.name != "single":
         single = load_stage_state(args, "single")
         model.encoder.load_state_dict(_prefixed(single, "encoder."))
@@ -226,6 +257,18 @@ def build_stage_model(args: TrainArgs, spec: StageSpec) -> nn.Module:
     if spec.name == COMPRESS:  # a fresh compressor between the frozen encoder and the frozen heads
         model.compressor = ChannelCompressor(model.encoder.out_channels, spec.ratio)
     return model
+
+
+def param_groups(model: nn.Module, spec: StageSpec) -> list[dict]:
+    """AdamW parameter groups with their peak learning rates: a pretrained image backbone fine-tunes at
+    PRETRAINED_LR_SCALE x the stage's rate (the rest of a camera encoder and the heads start from scratch)."""
+    params = trainable(model, spec)
+    backbone = getattr(model.encoder, "image_backbone", None)
+    if backbone is None or not backbone.pretrained or spec.inputs == "cache":
+        return [{"params": params, "lr": spec.lr}]
+    mine = {id(p) for p in backbone.parameters()}
+    return [{"params": [p for p in params if id(p) in mine], "lr": spec.lr * PRETRAINED_LR_SCALE},
+            {"params": [p for p in params if id(p) not in mine], "lr": spec.lr}]
 
 
 def trainable(model: nn.Module, spec: StageSpec) -> list[nn.Parameter]:

@@ -25,6 +25,7 @@ checkpoints every few minutes and per epoch under --work; `--resume` continues m
 from __future__ import annotations
 
 import dataclasses
+import json
 import shlex
 import sys
 import time
@@ -37,8 +38,8 @@ from torch import Tensor, nn
 from models import zoo
 from models.compression import ChannelCompressor
 from models.heads import AnchorTargetAssigner
-from models.registry import MODALITY, build_cooperative, is_intermediate
-from v2vsim.data.layout import DatasetError, runs_of
+from models.registry import MODALITY, is_intermediate
+from v2vsim.data.layout import DatasetError, read_manifest, runs_of
 from v2vsim.data.torch_dataset import CooperativeDataset, collate, tensor_inputs
 from v2vsim.training.augment import yaw_rotate_batch
 from v2vsim.training.cache import (
@@ -59,14 +60,16 @@ from v2vsim.training.stages import (
     TrainArgs,
     _prefixed,
     build_stage_model,
+    build_training_model,
     check_zoo_grid,
     load_stage_state,
+    param_groups,
     stage_dir,
     stage_file,
     stages_for,
     state_to_save,
     train_cells,
-    trainable,
+    train_image_backbone,
     wire_compressor,
     zoo_state,
 )
@@ -142,6 +145,8 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
         raise ValueError(f"--stage early: early fusion ships LiDAR points; the {args.encoder} (camera) zoo has no "
                          "early stage")
     check_zoo_grid(args)
+    if camera:
+        check_dataset_has_cameras(args)
     if args.stage == "cache":
         encoder, source = cache_encoder(args, log)
         store = CooperativeDataset(args.data, "train").store
@@ -190,16 +195,18 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
     single = model if spec.name in ("single", "none", EXTRAPOLATE, COMPRESS) else build_stage_model(args, SPECS["none"])
     teacher = None
     if spec.distill_weight > 0:
-        teacher = build_cooperative(args.encoder, "early", args.preset, cells=train_cells(args))
+        teacher = build_training_model(args, "early")
         st = load_stage_state(args, "early")
         teacher.encoder.load_state_dict(_prefixed(st, "encoder."))
         teacher.heads.load_state_dict(_prefixed(st, "heads."))
         teacher = teacher.to(dev).eval()
-    params = trainable(model, spec)
-    opt = torch.optim.AdamW(params, lr=spec.lr, weight_decay=1e-2)
+    groups = param_groups(model, spec)
+    params = [p for g in groups for p in g["params"]]
+    opt = torch.optim.AdamW(groups, lr=spec.lr, weight_decay=1e-2)
     steps_per_epoch = max(1, spec.samples_per_epoch // spec.batch)
     total = steps_per_epoch * spec.epochs
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=spec.lr, total_steps=total, pct_start=0.1)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=[g["lr"] for g in groups], total_steps=total,
+                                                pct_start=0.1)
     assigner = AnchorTargetAssigner(model.anchors) if model.heads.detection is not None else None
     work = stage_file(args, stage_dir(spec)).parent
     work.mkdir(parents=True, exist_ok=True)
@@ -214,6 +221,8 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
         print(f"[{spec.name}] resuming at epoch {epoch + 1}, step {step}", file=log)
     elif last.is_file() and not args.resume:
         print(f"[{spec.name}] starting over ({last} exists; --resume continues it)", file=log)
+    elif args.resume:
+        print(f"[{spec.name}] --resume: nothing to resume ({last} does not exist): starting from scratch", file=log)
 
     def save(ep: int, st: int) -> None:
         tmp = work / "last.tmp"
@@ -300,6 +309,17 @@ def batches(ds: CooperativeDataset, perm: np.ndarray, batch: int, first: int, st
                                             prefetch_factor=4, persistent_workers=False))
 
 
+def check_dataset_has_cameras(args: TrainArgs) -> None:
+    """A camera encoder trains on a dataset recorded with cameras: DatasetError naming the first run without."""
+    doc = read_manifest(args.data)
+    for r in doc["runs"]:
+        info = args.data / r["name"] / "run.json"
+        if info.is_file() and not json.loads(info.read_text()).get("cameras", False):
+            raise DatasetError(f"{info}: run {r['name']} was recorded without cameras; --encoder {args.encoder} "
+                               "trains on camera images: record the dataset with `v2vsim dataset ... --cameras "
+                               "--set perception.modality=camera` (scripts/camera_zoo.sh)")
+
+
 def cache_encoder(args: TrainArgs, log) -> tuple[nn.Module, str]:
     """The encoder that fills the feature cache, and where its weights come from: the `single` stage's
     output under --work, or (when --work has none) the encoder of the zoo at --out, so that a cache can
@@ -310,8 +330,7 @@ def cache_encoder(args: TrainArgs, log) -> tuple[nn.Module, str]:
     path = None if entry is None else zoo.method_file(entry, "encoder", args.out, args.encoder, args.preset)
     if path is None:  # neither: the usual "train single first" error
         load_stage_state(args, "single")
-    torch.manual_seed(args.seed)
-    encoder = build_cooperative(args.encoder, "none", args.preset, cells=train_cells(args)).encoder
+    encoder = build_training_model(args, "none").encoder
     encoder.load_state_dict(_prefixed(zoo_state(args, "encoder"), "encoder."))
     print(f"[cache] {stage_file(args, 'single')} does not exist: encoding with the zoo's encoder {path}",
           file=log, flush=True)
@@ -375,7 +394,7 @@ def export(args: TrainArgs, spec: StageSpec, state: dict, history: list, wall_s:
     path = args.out / zoo.zoo_name(args.encoder, args.preset) / name
     cells = train_cells(args)
     config = {"spec": dataclasses.asdict(spec), "seed": args.seed, "encoder": args.encoder, "preset": args.preset,
-              "cells": cells, "bf16": args.bf16}
+              "cells": cells, "bf16": args.bf16, "image_backbone": train_image_backbone(args)}
     zoo.save_checkpoint(path, state, encoder=args.encoder, preset=args.preset, stage=spec.name,
                         methods=list(spec.methods), config=config)
     runs = {s: [r["name"] for r in runs_of(manifest, s)] for s in ("train", "val", "eval")}
@@ -398,7 +417,8 @@ def export(args: TrainArgs, spec: StageSpec, state: dict, history: list, wall_s:
     zoo.register(path, encoder=args.encoder, preset=args.preset, methods=[] if extrapolate else list(spec.methods),
                  info=info, root=args.out, provides_encoder=spec.name == "single",
                  extrapolates=tuple(spec.methods) if extrapolate else (), cells=cells,
-                 compresses=spec.ratio if spec.name == COMPRESS else None, trained_wire=spec.wire_ratio)
+                 compresses=spec.ratio if spec.name == COMPRESS else None, trained_wire=spec.wire_ratio,
+                 image_backbone=train_image_backbone(args))
     if spec.name == COMPRESS and spec.ratio == WIRE_RATIO:  # every later stage trains on this wire
         zoo.set_wire_ratio(args.encoder, args.preset, WIRE_RATIO, args.out)
     return path

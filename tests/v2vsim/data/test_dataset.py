@@ -176,3 +176,39 @@ def test_with_previous_adds_each_agents_previous_message_and_changes_nothing_els
     batch = collate([prev[len(prev) - 1], prev[0]])
     assert batch["prev_rel_poses"].shape == batch["rel_poses"].shape
     assert batch["prev_frames"] == [prev[len(prev) - 1]["prev_frames"], prev[0]["prev_frames"]]
+
+
+def test_an_interrupted_recording_resumes_where_it_stopped(tiny_dataset, tmp_path, monkeypatch) -> None:
+    """Ctrl-C mid-seed kept the frames written but the same command sensed the seed again from frame 1; now it
+    senses only the missing frames, and the result is the plain recording's."""
+    import v2vsim.data.record as record
+
+    out, real, calls = tmp_path / "ds", record.record_frame, []
+
+    def interrupted(*a, **k):
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        calls.append(1)
+        return real(*a, **k)
+
+    monkeypatch.setattr(record, "record_frame", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        record_dataset("scenarios/intersection.yaml", [700], 4, out, log=io.StringIO())
+    assert sorted(p.name for p in (out / "intersection_s700").glob("f*.npz")) == ["f00000.npz", "f00001.npz"]
+    monkeypatch.setattr(record, "record_frame", lambda *a, **k: calls.append(1) or real(*a, **k))
+    record_dataset("scenarios/intersection.yaml", [700], 4, out, log=io.StringIO())
+    assert len(calls) == 4  # 2 before the interruption, the 2 missing after
+    for k in range(4):
+        with np.load(frame_path(tiny_dataset / "intersection_s700", k)) as a, \
+                np.load(frame_path(out / "intersection_s700", k)) as b:
+            assert all(np.array_equal(a[key], b[key]) for key in a.files), k
+    # other sensing settings (here: cameras) never reuse those frames
+    assert record._prepare_sensing(out / "intersection_s700", True, ("seed=700",)) == 0
+    assert not list((out / "intersection_s700").glob("f*.npz"))
+
+
+def test_a_folder_that_is_not_a_dataset_is_refused(tmp_path) -> None:
+    (tmp_path / "notes.txt").write_text("mine")
+    with pytest.raises(DatasetError, match="not empty and not a dataset.*notes.txt"):
+        record_dataset("scenarios/intersection.yaml", [700], 1, tmp_path, log=io.StringIO())
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]  # nothing written beside it

