@@ -119,7 +119,7 @@ def test_done_is_said_only_when_the_report_exists(tmp_path: Path, monkeypatch: p
     """issue 8 item 7: an ego that wrote nothing must not end in "done: .../report.md"."""
     sc = load_scenario(SCENARIO)
     monkeypatch.setattr(runner, "_start", lambda children, *a: None)
-    monkeypatch.setattr(runner, "_watch", lambda children, display: 0)
+    monkeypatch.setattr(runner, "_watch", lambda children, display, failures: 0)
     assert runner.run(sc, tmp_path, frames=2) == 1
     err = capsys.readouterr().err
     assert "v2vsim: done" not in err and f"no report was written to {tmp_path}" in err
