@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import sys
+from collections import Counter
 
 import numpy as np
 
@@ -39,13 +40,11 @@ def collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str], 
                 if kind in kinds:
                     raw[kind] += table
                 del box.raw[(kind, f)]
-        unframed, box.unframed = box.unframed, []
-        early, box.rejected = box.rejected, []
-    for kind, reason in early:
-        _count_rejected(inboxes, kind, reason)
-    for kind, sender, data in unframed:
-        if kind in kinds:
-            decoder.receive(kind, data, sender, _stats_for(inboxes, kind))  # too short to be anything: counted
+        box.mark_collected(k)
+        early, box.rejected = box.rejected, Counter()
+    for (kind, reason), n in early.items():
+        if kind in inboxes:
+            _count_rejected(inboxes, kind, reason, n)
     visible: set[str] = set()
     for _sender, data in raw["vis"]:
         try:
@@ -140,12 +139,11 @@ def reject_leftovers(box: Mailbox, kinds: list[str], inboxes: dict[str, Inbox], 
     """Messages never fused (e.g. claiming a frame the run never reached) still get validated and counted."""
     with box.cond:
         leftovers = [(kind, s, data) for (kind, _f), table in box.raw.items() if kind in kinds for s, data in table]
-        leftovers += [(kind, s, data) for kind, s, data in box.unframed if kind in kinds]
-        early, box.rejected = box.rejected, []
+        early, box.rejected = box.rejected, Counter()
         box.raw.clear()
-        box.unframed.clear()
-    for kind, reason in early:
-        _count_rejected(inboxes, kind, reason)
+    for (kind, reason), n in early.items():
+        if kind in inboxes:
+            _count_rejected(inboxes, kind, reason, n)
     for kind, sender, data in leftovers:
         decoder.receive(kind, data, sender, _stats_for(inboxes, kind))
 
@@ -156,9 +154,9 @@ def _stats_for(inboxes: dict[str, Inbox], kind: str) -> list[CommStats]:
     return [inboxes[kind].stats] + ([inboxes["features"].stats] if kind != "features" else [])
 
 
-def _count_rejected(inboxes: dict[str, Inbox], kind: str, reason: str) -> None:
+def _count_rejected(inboxes: dict[str, Inbox], kind: str, reason: str, n: int = 1) -> None:
     for s in _stats_for(inboxes, kind):
-        s.record_rejected(reason)
+        s.record_rejected(reason, n)
 
 
 def bytes_for(method: str, inboxes: dict[str, Inbox]) -> int:

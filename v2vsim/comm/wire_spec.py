@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 from models.heads import MAX_DETECTIONS
 from models.presets import get_preset
-from v2vsim.comm.codec import CELLS, AtMost, KindSpec, Message, RejectedMessage, decode
+from v2vsim.comm.codec import CELLS, AtMost, KindSpec, Message, RejectedMessage, check_arrival, decode
 from v2vsim.comm.stats import CommStats
 from v2vsim.config import Scenario
 
@@ -91,6 +91,17 @@ class EgoDecoder:
         if sender is not None and msg.sender_id != sender:
             raise RejectedMessage("unknown_sender", f"{msg.sender_id!r} published under {sender!r}")
         return msg
+
+    def check_arrival(self, kind: str, data: bytes, sender: str) -> int:
+        """The frame of a message that just came off `kind`'s key from `sender`, after the cheap checks
+        (header, signature under comm.auth, run, sender: codec.check_arrival); RejectedMessage otherwise.
+        The ego runs this on zenoh's thread so that nothing forged or foreign takes a slot in its mailbox."""
+        if not self._accepted(kind):
+            raise RejectedMessage("unexpected_kind", f"nothing of kind {kind!r} is expected")
+        frame, claimed = check_arrival(data, key=self.key, run_id=self.run_id, known_senders=self.senders)
+        if claimed != sender:
+            raise RejectedMessage("unknown_sender", f"{claimed!r} published under {sender!r}")
+        return frame
 
     def receive(self, kind: str, data: bytes, sender: str | None, stats: Iterable[CommStats]) -> Message | None:
         """decode(), with a rejection counted (by reason) in every `stats` instead of raised."""
