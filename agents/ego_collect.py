@@ -59,7 +59,7 @@ def collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str], 
             print(f"v2vsim-ego: frame {k}: {e}; not recorded", file=sys.stderr)
     for kind in kinds:
         for sender, data in raw[kind]:
-            msg = decoder.receive(kind, data, sender, _stats_for(inboxes, kind))
+            msg = decoder.receive(kind, data, sender, _stats_for(inboxes, kind), verified=box.check is not None)
             if msg is None:
                 inboxes[kind].mark_rejected(sender)
                 continue
@@ -109,7 +109,8 @@ def collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str], 
                                                     now - msg.capture_time, args.scenario.bev.size_m)
     if own_decoder is not None:
         for sender, data in raw["own"]:
-            msg = own_decoder.receive("features", data, sender, ())  # its own process: a failure is not V2V's
+            msg = own_decoder.receive("features", data, sender, (),  # its own process: a failure is not V2V's
+                                      verified=box.check is not None)
             if msg is not None and msg.sender_id == me and msg.frame == k:
                 inp.own = msg.payload
     return inp, visible, scans
@@ -145,7 +146,7 @@ def reject_leftovers(box: Mailbox, kinds: list[str], inboxes: dict[str, Inbox], 
         if kind in inboxes:
             _count_rejected(inboxes, kind, reason, n)
     for kind, sender, data in leftovers:
-        decoder.receive(kind, data, sender, _stats_for(inboxes, kind))
+        decoder.receive(kind, data, sender, _stats_for(inboxes, kind), verified=box.check is not None)
 
 
 def _stats_for(inboxes: dict[str, Inbox], kind: str) -> list[CommStats]:

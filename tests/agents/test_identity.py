@@ -19,6 +19,7 @@ import zenoh
 import agents.common as common
 from agents.common import Bus
 from v2vsim.comm import control
+from v2vsim.comm import transport as T
 from v2vsim.comm.codec import Message, RejectedMessage, check_arrival, decode, encode
 from v2vsim.comm.control import ControlPolicy, ReplayGuard, open_sealed, seal
 from v2vsim.comm.identity import IdentityError, issue, parse_identity, write_identity_file
@@ -231,3 +232,45 @@ def test_without_auth_a_fake_ego_token_no_longer_hangs_the_run(tmp_path: Path, r
         fake.undeclare()
     m = _metrics(out)
     assert m["frames"] == frames and m["status"] == "complete", m["status"]
+
+
+def test_replays_and_near_future_copies_are_not_counted_as_fused_bytes(tmp_path: Path, router: str) -> None:
+    """Issue 34 item 4, by a holder of the shared run key: cav1's genuine signed features of frames 0-10
+    played back later, and 500 signed copies claiming frames k+2..k+11, raised CoBEVT's bytes per frame
+    5 % and 5x. Now they are refused on arrival (out of the window, replayed, or a second message for a
+    slot), counted apart, and bytes_per_frame stays at most one message per neighbour and frame."""
+    key_file = tmp_path / "run.key"
+    key_file.write_text("flood run key\n")
+    key = b"flood run key"
+    run_id, frames = "replay1", 40
+    out = tmp_path / "run"
+    run = Run("--frames", str(frames), "--out", str(out), "--run-id", run_id, "--methods", "none,cobevt",
+              "--set", "cavs.count=2", "--set", "transport.mode=client", "--set", f"transport.connect=[{router}]",
+              "--set", f"comm.auth.key_file={key_file}", "--set", "comm.range_m=1000", "--set", "output.rerun=false")
+    genuine: dict[int, bytes] = {}
+    with _client(router) as session:
+        sub = T.Subscriber(session, f"v2vsim/{run_id}/features/cav1")
+        deadline = time.monotonic() + 240
+        while len(genuine) < 12 and time.monotonic() < deadline:
+            got = sub.get(timeout=1)
+            if got is not None:
+                genuine.setdefault(decode(got.data, key=key).frame, got.data)
+        assert set(range(12)) <= set(genuine), ("".join(run.log), sorted(genuine))
+        size = len(genuine[0])
+        pub = _matched(session, f"v2vsim/{run_id}/features/cav1")
+        for f in range(11):  # frames 0-10 played back at frame 11 or later
+            pub.put(genuine[f])
+        k = max(genuine)
+        for i in range(500):  # signed copies of a real message claiming the next frames
+            msg = decode(genuine[k], key=key)
+            f = k + 2 + i % 10
+            pub.put(encode(Message(kind=msg.kind, run_id=run_id, sender_id="cav1", frame=f, capture_time=f / 10,
+                                   sender_pose=msg.sender_pose, payload=msg.payload,
+                                   channel_compression=msg.channel_compression), key))
+        assert run.finish() == 0, "".join(run.log)
+    m = _metrics(out)
+    assert m["frames"] == frames and m["status"] == "complete", m["status"]
+    reasons = m["comm"]["rejected_reasons"]
+    assert reasons.get("out_of_window", 0) + reasons.get("replayed", 0) >= 11, reasons  # the playback
+    assert sum(reasons.get(r, 0) for r in ("out_of_window", "replayed", "duplicate")) >= 11 + 500 - 10, reasons
+    assert m["methods"]["cobevt"]["bytes_per_frame"] <= size * 1.01, m["methods"]["cobevt"]  # one neighbour
