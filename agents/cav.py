@@ -26,8 +26,8 @@ from agents.common import (
     AgentArgs,
     Bus,
     parse_agent_args,
-    read_key,
     run_agent,
+    run_signer,
 )
 from agents.timing import StageTimer, write_timing
 from v2vsim.comm.codec import Message, encode
@@ -56,7 +56,7 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
     sc = args.scenario
     me = args.cav
     methods = sc.perception.methods
-    key = read_key(sc.comm.auth.key_file)
+    key = run_signer(args)
     encoder = build_agent_encoder(sc)
     compressor, ratio = build_compressor(sc, encoder.out_channels), wire_ratio(sc)
     late = "late" in methods
@@ -113,6 +113,8 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
                 world = world_from_bytes(data, static)
             except ValueError as e:
                 print(f"v2vsim-cav {me}: ignoring {e}", file=sys.stderr)
+                continue
+            if world.frame <= frame:  # sent again for an ego that missed it (agents/driver.py): had it
                 continue
             frame = world.frame
             actor = world.actor(me)

@@ -11,7 +11,10 @@ Liveliness: each process declares a token v2vsim/<run>/alive/<role>.<id>; zenoh 
 when the process's session drops, SIGKILL included, which is how the others notice a dead agent
 within milliseconds instead of waiting for a timeout. A process that ends on its own (done,
 Ctrl-C, an error) first says `bye` with its exit code, so that a token that drops without a
-bye means the process died.
+bye means the process died. Anyone on the bus can declare a token, so under comm.auth a token
+alone proves nothing: a process counts as present only once its signed `hello` came (it repeats
+one every HEARTBEAT_S), and as gone when its token drops, on its signed bye, or after SILENCE_S
+without a hello (a token someone else holds on its key cannot keep a dead process alive).
 
 Control kinds (v2vsim.comm.control: world, done, ack, start, static, vis, scan, bye) are checked by
 the Bus itself: only the processes allowed to send a kind are heard, and with comm.auth on
@@ -32,11 +35,12 @@ import time
 from collections import Counter
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import zenoh
 
-from v2vsim.comm.codec import RejectedMessage
+from v2vsim.comm.codec import RejectedMessage, Signer
 from v2vsim.comm.control import (
     CONTROL_KINDS,
     DRIVER,
@@ -46,17 +50,39 @@ from v2vsim.comm.control import (
     process_id,
     seal,
 )
+from v2vsim.comm.identity import Identity, IdentityError, parse_identity
 from v2vsim.comm.transport import TransportError, message_key, open_session, parse_key
 from v2vsim.config import ConfigError, Scenario, load_scenario
 
 START_TIMEOUT_S = 300.0  # agents import torch and build their models before they are ready
 DRIVER_GRACE_S = 1.0  # after the driver's token drops, how long its `bye` or `done` may still take to arrive
 DONE_GRACE_S = 5.0  # without comm.auth, an unverifiable `done` is believed after this long without a world
+HEARTBEAT_S = 1.0  # under comm.auth every process says a signed hello this often
+SILENCE_S = 8.0  # under comm.auth, a process without a hello for this long is gone (its token notwithstanding)
 
 
 def read_key(path: str | None) -> bytes | None:
-    """The run key of comm.auth.key_file (None: auth off)."""
+    """The run key of comm.auth.key_file (None: no shared key)."""
     return None if path is None else open(path, "rb").read().strip()
+
+
+def run_signer(args: AgentArgs) -> Signer | None:
+    """What this process signs with and checks others' messages by: its Identity under comm.auth.identity
+    per_process, the shared run key under comm.auth.key_file, None with comm.auth off."""
+    return args.identity if args.identity is not None else read_key(args.scenario.comm.auth.key_file)
+
+
+def load_identity(spec: str, sc: Scenario, run_id: str, name: str) -> Identity:
+    """The Identity the runner issued this process: '-' = on stdin (a local child), else an identity file
+    (an agent on another host, docs/cluster.md). IdentityError says what is wrong."""
+    if spec == "-":
+        text, where = sys.stdin.read(), "the identity on stdin"
+    else:
+        try:
+            text, where = Path(spec).read_text(), spec
+        except OSError as e:
+            raise IdentityError(f"--identity {spec}: cannot read it: {e.strerror or e}") from None
+    return parse_identity(text, where, run_id=run_id, name=name)
 
 
 @dataclass(frozen=True)
@@ -72,6 +98,7 @@ class AgentArgs:
     cav: str  # this process's CAV id ('' for the driver)
     frames: int
     out: str
+    identity: Identity | None = None  # comm.auth.identity per_process: this process's credentials
 
 
 def parse_agent_args(role: str, argv: list[str] | None = None) -> AgentArgs:
@@ -86,23 +113,40 @@ def parse_agent_args(role: str, argv: list[str] | None = None) -> AgentArgs:
     p.add_argument("--cav", default="")
     p.add_argument("--frames", type=int, default=0)
     p.add_argument("--out", default="")
+    p.add_argument("--identity", default=None,
+                   help="comm.auth.identity per_process: '-' (on stdin) or the identity file the runner issued")
     a = p.parse_args(argv)
     try:
         sc = load_scenario(a.scenario, a.overrides)
     except ConfigError as e:
         print(f"v2vsim-{role}: error: {e}", file=sys.stderr)
         sys.exit(2)
+    identity = None
+    name = f"{role}.{a.cav or 'main'}"
+    if sc.comm.auth.identity == "per_process":
+        if a.identity is None:
+            print(f"v2vsim-{role}: error: comm.auth.identity is per_process and no --identity was given (the "
+                  "runner prints each remote agent's command line with its identity file)", file=sys.stderr)
+            sys.exit(2)
+        try:
+            identity = load_identity(a.identity, sc, a.run_id, name)
+        except IdentityError as e:
+            print(f"v2vsim-{role}: error: {e}", file=sys.stderr)
+            sys.exit(2)
     split = lambda s: tuple(x for x in s.split(",") if x)  # noqa: E731
     return AgentArgs(scenario=sc, scenario_path=a.scenario, overrides=tuple(a.overrides), run_id=a.run_id,
                      listen=a.listen, peers=tuple(a.peers), cavs=split(a.cavs), egos=split(a.egos), cav=a.cav,
-                     frames=a.frames or sc.frames, out=a.out)
+                     frames=a.frames or sc.frames, out=a.out, identity=identity)
 
 
 def agent_argv(args_scenario: str, overrides: Iterable[str], run_id: str, listen: str, peers: Iterable[str],
-               cavs: Iterable[str], egos: Iterable[str], frames: int, cav: str = "", out: str = "") -> list[str]:
+               cavs: Iterable[str], egos: Iterable[str], frames: int, cav: str = "", out: str = "",
+               identity: str = "") -> list[str]:
     """The command-line tail that `parse_agent_args` reads (the runner builds it)."""
     argv = [args_scenario, "--run-id", run_id, "--cavs", ",".join(cavs), "--egos", ",".join(egos),
             "--frames", str(frames)]
+    if identity:
+        argv += ["--identity", identity]
     for o in overrides:
         argv += ["--set", o]
     if listen:
@@ -119,11 +163,11 @@ def agent_argv(args_scenario: str, overrides: Iterable[str], run_id: str, listen
 class Bus:
     """A zenoh session scoped to one run: put/subscribe by (kind, sender), a queryable, liveliness.
 
-    key: the comm.auth run key; control kinds are then signed by put/serve and verified by
-    subscribe/fetch. policy: who may send each control kind (None: anyone, the old behaviour).
+    key: the comm.auth run key or this process's Identity; control kinds are then signed by put/serve and
+    verified by subscribe/fetch. policy: who may send each control kind (None: anyone, the old behaviour).
     """
 
-    def __init__(self, session: zenoh.Session, run_id: str, name: str, *, key: bytes | None = None,
+    def __init__(self, session: zenoh.Session, run_id: str, name: str, *, key: Signer | None = None,
                  policy: ControlPolicy | None = None) -> None:
         self.session = session
         self.run_id = run_id
@@ -141,9 +185,15 @@ class Bus:
         self._rejected: Counter[tuple[str, str]] = Counter()
         self._warned: set[str] = set()
         self._byes: dict[str, dict[str, Any]] = {}
+        self._hello_at: dict[str, float] = {}  # process name -> time.monotonic() of its latest signed hello
+        self._silent: set[str] = set()  # proven processes whose hellos stopped (gone, token or not)
+        self._closing = threading.Event()
         self._keep.append(session.liveliness().declare_subscriber(
             f"v2vsim/{run_id}/alive/*", self._on_liveliness, history=True))
         self._subscribe("bye", self._on_bye)
+        if key is not None:
+            self._subscribe("hello", self._on_hello)
+            threading.Thread(target=self._watch_silence, name="bus-silence", daemon=True).start()
 
     @property
     def authenticated(self) -> bool:
@@ -151,8 +201,46 @@ class Bus:
         return self.key is not None
 
     def ready(self) -> None:
-        """Announce this process (models built, subscriptions declared): the driver waits for it."""
+        """Announce this process (models built, subscriptions declared): the driver waits for it. Under
+        comm.auth it also says a signed hello now and every HEARTBEAT_S until the bus closes."""
         self._keep.append(self.session.liveliness().declare_token(message_key(self.run_id, "alive", self.name)))
+        if self.key is not None:
+            threading.Thread(target=self._heartbeat, name="bus-hello", daemon=True).start()
+
+    def _heartbeat(self) -> None:
+        while not self._closing.is_set():
+            try:
+                self.put("hello", json.dumps({"name": self.name}).encode())
+            except Exception:  # the session is closing or failing: the others will notice the silence
+                return
+            self._closing.wait(HEARTBEAT_S)
+
+    def _proven(self, who: str) -> bool:
+        """Under comm.auth, whether `who` said a signed hello (without, a token is all there is). Under the lock."""
+        return self.key is None or who in self._hello_at
+
+    def _on_hello(self, name: str, payload: bytes) -> None:
+        with self._alive_cond:
+            first = name not in self._hello_at
+            self._hello_at[name] = time.monotonic()
+            self._silent.discard(name)
+            if first and name in self._alive:
+                self._ever_alive.add(name)
+            self._alive_cond.notify_all()
+
+    def _watch_silence(self) -> None:
+        while not self._closing.wait(0.25):
+            now = time.monotonic()
+            with self._alive_cond:
+                quiet = [n for n, t in self._hello_at.items()
+                         if now - t > SILENCE_S and n not in self._silent and n != self.name]
+                self._silent.update(quiet)
+                lost = [n for n in quiet if n in self._alive]
+                if quiet:
+                    self._alive_cond.notify_all()
+            for who in lost:
+                for cb in self._lost_callbacks:
+                    cb(who)
 
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
         try:
@@ -163,9 +251,10 @@ class Bus:
         with self._alive_cond:
             if sample.kind == zenoh.SampleKind.PUT:
                 self._alive.add(who)
-                self._ever_alive.add(who)
+                if self._proven(who):
+                    self._ever_alive.add(who)
             else:
-                lost = who in self._alive
+                lost = who in self._alive and who in self._ever_alive and who not in self._silent
                 self._alive.discard(who)
             self._alive_cond.notify_all()
         if lost:
@@ -176,15 +265,17 @@ class Bus:
         self._lost_callbacks.append(callback)
 
     def is_alive(self, who: str) -> bool:
+        """Its token is up and, under comm.auth, it proved itself and has not gone silent."""
         with self._alive_cond:
-            return who in self._alive
+            return who in self._alive and self._proven(who) and who not in self._silent
 
     def was_alive(self, who: str) -> bool:
         with self._alive_cond:
             return who in self._ever_alive
 
     def wait_alive(self, names: Iterable[str], timeout_s: float) -> None:
-        """Block until every named process has joined; TimeoutError names the missing ones."""
+        """Block until every named process has joined (under comm.auth: token and signed hello); TimeoutError
+        names the missing ones."""
         names = set(names)
         deadline = time.monotonic() + timeout_s
         with self._alive_cond:
@@ -326,6 +417,7 @@ class Bus:
         raise TimeoutError(f"no answer on {key} within {timeout_s:g} s")
 
     def close(self) -> None:
+        self._closing.set()
         for pub in self._pubs.values():
             pub.undeclare()
         for ent in self._keep:
@@ -357,8 +449,8 @@ def run_agent(args: AgentArgs, role: str, ident: str, body: Callable[[Bus], int]
     except TransportError as e:
         print(f"v2vsim-{role}: error: {e}", file=sys.stderr)
         return 2
-    key = read_key(args.scenario.comm.auth.key_file)
-    bus = Bus(session, args.run_id, f"{role}.{ident}", key=key, policy=ControlPolicy.for_run(args.cavs, args.egos))
+    bus = Bus(session, args.run_id, f"{role}.{ident}", key=run_signer(args),
+              policy=ControlPolicy.for_run(args.cavs, args.egos))
     code, why = 1, "crashed"
     try:
         code, why = body(bus), "finished"

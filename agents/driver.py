@@ -20,6 +20,9 @@ from agents.timing import StageTimer, write_timing
 from v2vsim.traffic import make_backend
 from v2vsim.world.serialize import static_to_bytes, world_to_bytes
 
+ACK_RESEND_S = 2.0  # an ego silent this long gets the worlds it has not acked again
+HANG_TIMEOUT_S = 120.0  # no ack for this long ends the run (exit 1, why on stderr); the ego waits 60 s for a CAV
+
 
 def drive(args: AgentArgs, bus: Bus) -> int:
     sc = args.scenario
@@ -47,10 +50,27 @@ def drive(args: AgentArgs, bus: Bus) -> int:
         print(f"v2vsim-driver: every ego process is gone at frame {k}; stopping", file=sys.stderr, flush=True)
         return True
 
+    recent: dict[int, bytes] = {}  # the worlds an ego may still wait for (frames past the oldest ack)
+
     def wait_acks(k: int) -> None:
+        """Until every live ego acked frame k. An ego that has not for ACK_RESEND_S is sent the worlds it has
+        not acked again (it may have missed them, e.g. joining late; agents ignore a world they have had);
+        one that has not for HANG_TIMEOUT_S is a TimeoutError: the run cannot go on, and says why."""
+        t0 = resent = time.monotonic()
         while not all(acks.get(e, -1) >= k for e in egos if bus.is_alive(f"ego.{e}")):
             ack_event.wait(0.5)
             ack_event.clear()
+            now = time.monotonic()
+            late = [e for e in egos if bus.is_alive(f"ego.{e}") and acks.get(e, -1) < k]
+            if late and now - t0 > HANG_TIMEOUT_S:
+                raise TimeoutError(f"no ack for frame {k} from ego {', '.join(late)} within {HANG_TIMEOUT_S:g} s")
+            if late and now - resent > ACK_RESEND_S:
+                oldest = min(acks.get(e, -1) for e in late)
+                for f in sorted(f for f in recent if f > oldest):
+                    bus.put("world", recent[f])
+                resent = now
+        for f in [f for f in recent if f <= min((acks.get(e, -1) for e in egos), default=k)]:
+            del recent[f]
 
     timer = StageTimer()
     backend = make_backend(sc)
@@ -72,7 +92,8 @@ def drive(args: AgentArgs, bus: Bus) -> int:
                 if k > 0:
                     world = backend.step()
             with timer.stage("comm"):
-                bus.put("world", world_to_bytes(world))
+                recent[k] = world_to_bytes(world)
+                bus.put("world", recent[k])
             timer.frame_done()
             with timer.stage("wait"):
                 if sc.transport.clock == "realtime":

@@ -30,11 +30,11 @@ from agents.common import (
     Bus,
     Stop,
     parse_agent_args,
-    read_key,
     run_agent,
+    run_signer,
 )
 from agents.ego_collect import bytes_for, collect, control_rejections, reject_leftovers
-from agents.ego_mailbox import Mailbox, cav_died, notify, put_world, set_done, wait_messages, wait_world
+from agents.ego_mailbox import Mailbox, Window, cav_died, notify, put_world, set_done, wait_messages, wait_world
 from agents.ego_scoring import AfterFusion, FusedFrame, signals_deferred
 from agents.progress import report_progress
 from agents.timing import StageTimer
@@ -82,7 +82,7 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
     me = args.cav
     methods = sc.perception.methods
     lidar = sc.perception.modality == "lidar"
-    key = read_key(sc.comm.auth.key_file)
+    key = run_signer(args)
     kinds = ["features"] + (["points"] if "early" in methods and lidar else []) + (
         ["outputs"] if "late" in methods else [])
     encoder = build_agent_encoder(sc)
@@ -99,9 +99,15 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
                                                              args.run_id, frozenset({me}), key)
 
     side = ["vis", "scan"] if sc.output.rerun else ["vis"]
+    def check(kind: str, sender: str, data: bytes) -> int:
+        if kind == "own":
+            return own_decoder.check_arrival("features", data, sender)  # type: ignore[union-attr]
+        return decoder.check_arrival(kind, data, sender)
+
     box = Mailbox({kind: decoder.max_bytes(kind) for kind in kinds} | {"vis": MAX_VIS_BYTES,
                                                                        "scan": max_scan_bytes(sc)}
-                  | ({"own": own_decoder.max_bytes("features")} if own_decoder is not None else {}))
+                  | ({"own": own_decoder.max_bytes("features")} if own_decoder is not None else {}),
+                  check=check, window=Window.for_scenario(sc))
     for kind in [*kinds, *side, *(["own"] if own_decoder is not None else [])]:
         bus.subscribe(kind, lambda sender, data, kind=kind: box.put(kind, sender, data))
     bus.subscribe("world", lambda sender, data: put_world(box, data))
@@ -147,6 +153,11 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
                 break
             if got == "interrupted":  # Ctrl-C reached the driver before it reached us
                 status = f"interrupted after {frames_done} frames"
+                break
+            if isinstance(got, str) and got.startswith("no world"):  # the driver is there but silent: a hang
+                status, code = f"stalled {_after(k)}: {got} from the driver", 1
+                print(f"v2vsim-ego {me}: {got} from the driver {_after(k)}; writing results and stopping",
+                      file=sys.stderr, flush=True)
                 break
             if isinstance(got, str):
                 status = f"ended early: the driver stopped {_after(k)} ({got})"

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import sys
+from collections import Counter
 
 import numpy as np
 
@@ -39,13 +40,11 @@ def collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str], 
                 if kind in kinds:
                     raw[kind] += table
                 del box.raw[(kind, f)]
-        unframed, box.unframed = box.unframed, []
-        early, box.rejected = box.rejected, []
-    for kind, reason in early:
-        _count_rejected(inboxes, kind, reason)
-    for kind, sender, data in unframed:
-        if kind in kinds:
-            decoder.receive(kind, data, sender, _stats_for(inboxes, kind))  # too short to be anything: counted
+        box.mark_collected(k)
+        early, box.rejected = box.rejected, Counter()
+    for (kind, reason), n in early.items():
+        if kind in inboxes:
+            _count_rejected(inboxes, kind, reason, n)
     visible: set[str] = set()
     for _sender, data in raw["vis"]:
         try:
@@ -60,7 +59,7 @@ def collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str], 
             print(f"v2vsim-ego: frame {k}: {e}; not recorded", file=sys.stderr)
     for kind in kinds:
         for sender, data in raw[kind]:
-            msg = decoder.receive(kind, data, sender, _stats_for(inboxes, kind))
+            msg = decoder.receive(kind, data, sender, _stats_for(inboxes, kind), verified=box.check is not None)
             if msg is None:
                 inboxes[kind].mark_rejected(sender)
                 continue
@@ -110,7 +109,8 @@ def collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str], 
                                                     now - msg.capture_time, args.scenario.bev.size_m)
     if own_decoder is not None:
         for sender, data in raw["own"]:
-            msg = own_decoder.receive("features", data, sender, ())  # its own process: a failure is not V2V's
+            msg = own_decoder.receive("features", data, sender, (),  # its own process: a failure is not V2V's
+                                      verified=box.check is not None)
             if msg is not None and msg.sender_id == me and msg.frame == k:
                 inp.own = msg.payload
     return inp, visible, scans
@@ -140,14 +140,13 @@ def reject_leftovers(box: Mailbox, kinds: list[str], inboxes: dict[str, Inbox], 
     """Messages never fused (e.g. claiming a frame the run never reached) still get validated and counted."""
     with box.cond:
         leftovers = [(kind, s, data) for (kind, _f), table in box.raw.items() if kind in kinds for s, data in table]
-        leftovers += [(kind, s, data) for kind, s, data in box.unframed if kind in kinds]
-        early, box.rejected = box.rejected, []
+        early, box.rejected = box.rejected, Counter()
         box.raw.clear()
-        box.unframed.clear()
-    for kind, reason in early:
-        _count_rejected(inboxes, kind, reason)
+    for (kind, reason), n in early.items():
+        if kind in inboxes:
+            _count_rejected(inboxes, kind, reason, n)
     for kind, sender, data in leftovers:
-        decoder.receive(kind, data, sender, _stats_for(inboxes, kind))
+        decoder.receive(kind, data, sender, _stats_for(inboxes, kind), verified=box.check is not None)
 
 
 def _stats_for(inboxes: dict[str, Inbox], kind: str) -> list[CommStats]:
@@ -156,9 +155,9 @@ def _stats_for(inboxes: dict[str, Inbox], kind: str) -> list[CommStats]:
     return [inboxes[kind].stats] + ([inboxes["features"].stats] if kind != "features" else [])
 
 
-def _count_rejected(inboxes: dict[str, Inbox], kind: str, reason: str) -> None:
+def _count_rejected(inboxes: dict[str, Inbox], kind: str, reason: str, n: int = 1) -> None:
     for s in _stats_for(inboxes, kind):
-        s.record_rejected(reason)
+        s.record_rejected(reason, n)
 
 
 def bytes_for(method: str, inboxes: dict[str, Inbox]) -> int:

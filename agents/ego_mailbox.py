@@ -6,14 +6,19 @@ and, in lockstep, for every live CAV's messages of a frame.
 from __future__ import annotations
 
 import json
+import math
 import signal
 import struct
 import sys
 import threading
 import time
-from collections import defaultdict
+from collections import Counter, defaultdict
+from collections.abc import Callable
+from dataclasses import dataclass
 
-from agents.common import DONE_GRACE_S, DRIVER, DRIVER_GRACE_S, Bus
+from agents.common import DONE_GRACE_S, DRIVER, DRIVER_GRACE_S, START_TIMEOUT_S, Bus
+from v2vsim.comm.codec import RejectedMessage
+from v2vsim.config import Scenario
 from v2vsim.recording.scan import scan_frame
 
 HANG_TIMEOUT_S = 60.0  # a live CAV that sends nothing for this long is treated as lost
@@ -21,37 +26,111 @@ HANG_TIMEOUT_S = 60.0  # a live CAV that sends nothing for this long is treated 
 SIDE_KINDS = ("vis", "scan", "own")  # "own": the ego's uncompressed map from its own CAV process
 
 
+@dataclass(frozen=True)
+class Window:
+    """Which frames the ego can still use a message for, as frames relative to the pipeline.
+
+    A CAV sends frame f only after the driver published world f, and in lockstep the driver publishes
+    world k+1 only once this ego fused frame k - transport.pipeline; so an honest message is for a frame
+    at most `ahead` past the last frame the ego collected (realtime: past the newest world it has; no
+    acks hold the driver back). A message older than `behind` frames before the last collected one can
+    only be fused stale (comm.max_age_ms), so it is not kept either."""
+
+    ahead: int  # transport.pipeline + 1, and 1 for a message that overtakes its world
+    behind: int  # frames within comm.max_age_ms
+    realtime: bool = False
+
+    @classmethod
+    def for_scenario(cls, sc: Scenario) -> Window:
+        return cls(ahead=sc.transport.pipeline + 2, behind=math.ceil(sc.comm.max_age_ms / 1000 * sc.rate_hz) + 1,
+                   realtime=sc.transport.clock == "realtime")
+
+
+ArrivalCheck = Callable[[str, str, bytes], int]
+"""check(kind, key sender, bytes) -> the frame the message is for, or RejectedMessage(reason): the
+cheap checks on arrival (header, signature, run, sender: v2vsim.comm.wire_spec.EgoDecoder.check_arrival)."""
+
+
 class Mailbox:
-    """Raw messages by (kind, frame, sender), filled on zenoh's thread, read on the main thread.
+    """Raw messages by (kind, frame), one per sender, filled on zenoh's thread, read on the main thread.
 
-    limits: kind -> the longest message that could be accepted; longer ones are not kept, only
-    counted (`rejected`), so a flood of oversized messages cannot pile up unread."""
+    What it holds is bounded whatever arrives (issue 34): a message longer than its kind's `limits`,
+    failing `check` (a forged signature never takes a slot), for a frame outside the `window`, or for a
+    (kind, frame, sender) slot it already holds or held is not kept, only counted in `rejected` by reason
+    (out_of_window, duplicate, replayed, or the check's). So memory is at most (window frames x senders x
+    kinds) messages of bounded size, and only what a method could fuse reaches the channel model and its
+    byte counts. Side kinds (vis, scan, own) are bounded the same way but never counted as V2V rejections."""
 
-    def __init__(self, limits: dict[str, int] | None = None) -> None:
+    def __init__(self, limits: dict[str, int] | None = None, *, check: ArrivalCheck | None = None,
+                 window: Window | None = None) -> None:
         self.cond = threading.Condition()
         self.raw: dict[tuple[str, int], list[tuple[str, bytes]]] = defaultdict(list)  # (sender key, bytes)
-        self.unframed: list[tuple[str, str, bytes]] = []  # could not even read a frame number
-        self.rejected: list[tuple[str, str]] = []  # (kind, reason) decided on arrival
+        self.rejected: Counter[tuple[str, str]] = Counter()  # (kind, reason) decided on arrival
         self.worlds: dict[int, bytes] = {}
         self.done = False
         self.done_at = 0.0  # time.monotonic() of the first done
         self.last_world = 0.0  # time.monotonic() of the latest world
+        self.newest_world = -1
+        self.collected = -1  # the latest frame taken out for fusion (ego_collect.collect)
         self.limits = dict(limits or {})
+        self.check = check
+        self.window = window
+        self._held: dict[int, set[tuple[str, str]]] = defaultdict(set)  # frame -> {(kind, sender)} ever kept
 
     def put(self, kind: str, sender: str, data: bytes) -> None:
         limit = self.limits.get(kind, 0)
         if limit and len(data) > limit:
-            if kind not in SIDE_KINDS:
-                with self.cond:
-                    self.rejected.append((kind, "size_mismatch"))
+            self._reject(kind, "size_mismatch")
             return
-        frame = _peek_frame(kind, data)
+        if self.check is not None and kind not in SIDE_KINDS[:2]:
+            try:
+                frame: int | None = self.check(kind, sender, data)
+            except RejectedMessage as e:
+                self._reject(kind, e.reason)
+                return
+        else:
+            frame = _peek_frame(kind, data)
+        if frame is None:
+            self._reject(kind, "truncated")
+            return
         with self.cond:
-            if frame is None:
-                self.unframed.append((kind, sender, data))
-            else:
+            reason = self._refuse(kind, sender, frame, data)
+            if reason is None:
+                self._held[frame].add((kind, sender))
                 self.raw[(kind, frame)].append((sender, data))
-            self.cond.notify_all()
+                self.cond.notify_all()
+        if reason is not None:
+            self._reject(kind, reason)
+
+    def _refuse(self, kind: str, sender: str, frame: int, data: bytes) -> str | None:
+        """Why frame `frame` of `kind` from `sender` is not kept (None: keep it). Under self.cond."""
+        w = self.window
+        if w is not None:
+            ref = max(self.collected, self.newest_world) if w.realtime else self.collected
+            if frame > ref + w.ahead or frame < self.collected - w.behind:
+                return "out_of_window"
+        if (kind, sender) in self._held.get(frame, ()):
+            held = [d for s, d in self.raw.get((kind, frame), ()) if s == sender]
+            return "duplicate" if held and held[0] != data else "replayed"
+        return None
+
+    def _reject(self, kind: str, reason: str) -> None:
+        if kind in SIDE_KINDS:  # our own processes' side channels: not V2V traffic, not counted
+            return
+        with self.cond:
+            self.rejected[(kind, reason)] += 1
+
+    def mark_collected(self, k: int) -> None:
+        """Frame k was taken out for fusion: the window moves on. Under self.cond."""
+        self.collected = max(self.collected, k)
+        if self.window is not None:  # slots too old to be kept again need no memory of being held
+            for f in [f for f in self._held if f < self.collected - self.window.behind]:
+                del self._held[f]
+
+    def pending(self) -> int:
+        """Messages held, for every kind and frame (a bound the flood test checks)."""
+        with self.cond:
+            return sum(len(v) for v in self.raw.values())
 
 
 def _peek_frame(kind: str, data: bytes) -> int | None:
@@ -75,7 +154,10 @@ def put_world(box: Mailbox, data: bytes) -> None:
     except (ValueError, KeyError, TypeError):
         return
     with box.cond:
+        if frame <= box.collected:  # fused already (a replay): nothing will wait for it
+            return
         box.worlds[frame] = data
+        box.newest_world = max(box.newest_world, frame)
         box.last_world = time.monotonic()
         box.cond.notify_all()
 
@@ -95,8 +177,12 @@ def notify(box: Mailbox) -> None:
 def wait_world(box: Mailbox, bus: Bus, k: int, realtime: bool) -> tuple[int, bytes] | str:
     """World k (lockstep), or the newest world from k on (realtime: frames we fell behind on are skipped),
     or why none will come: "done" (the driver finished), "died" (its token dropped without a bye or
-    done), "interrupted" (it was stopped by SIGINT: the run's Ctrl-C), or the reason it gave in its bye."""
+    done), "interrupted" (it was stopped by SIGINT: the run's Ctrl-C), the reason it gave in its bye, or
+    "no world for N s" when the driver, alive as far as anyone can tell, sent none for that long (frame 0:
+    START_TIMEOUT_S, the driver waits for every agent to start; later: HANG_TIMEOUT_S)."""
     gone_at = None
+    bound = START_TIMEOUT_S if k == 0 else HANG_TIMEOUT_S
+    deadline = time.monotonic() + bound
     with box.cond:
         while True:
             ready = [f for f in box.worlds if f >= k]
@@ -121,6 +207,8 @@ def wait_world(box: Mailbox, bus: Bus, k: int, realtime: bool) -> tuple[int, byt
                     return f"exit {bye.get('code')}: {bye.get('why', '')}"
                 if now - gone_at > DRIVER_GRACE_S:
                     return "died"
+            elif now > deadline:
+                return f"no world for {bound:g} s"
             box.cond.wait(0.2 if gone or box.done else 0.5)
 
 

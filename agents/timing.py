@@ -8,6 +8,7 @@ side. Stages named "wait*" are time spent waiting for others, not the process's 
 from __future__ import annotations
 
 import json
+import resource
 import time
 from collections import defaultdict
 from collections.abc import Iterator
@@ -45,7 +46,13 @@ class StageTimer:
         return round(sum(v for k, v in self.split().items() if not k.startswith("wait")), 3)
 
     def to_json(self) -> dict:
-        return {"frames": self.frames, "ms_per_frame": self.split(), "compute_ms_per_frame": self.compute_ms()}
+        return {"frames": self.frames, "ms_per_frame": self.split(), "compute_ms_per_frame": self.compute_ms(),
+                "peak_rss_mib": peak_rss_mib()}
+
+
+def peak_rss_mib() -> float:
+    """This process's peak resident memory so far (MiB): what a flood of messages would raise."""
+    return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)  # Linux reports KiB
 
 
 def write_timing(out: str, process: str, timer: StageTimer) -> None:

@@ -58,6 +58,8 @@ def _cmd_agent(args: argparse.Namespace) -> int:
 
     argv = [args.scenario, "--cav", args.cav, "--run-id", args.run_id, "--cavs", args.cavs, "--egos", args.egos,
             "--frames", str(args.frames)] + [x for o in args.overrides for x in ("--set", o)]
+    if args.identity:
+        argv += ["--identity", args.identity]
     return cav_main(argv)
 
 
@@ -233,6 +235,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cavs", required=True, help="comma-separated CAV ids of the run")
     p.add_argument("--egos", required=True, help="comma-separated ego ids of the run")
     p.add_argument("--frames", type=int, default=0)
+    p.add_argument("--identity", default=None, help="comm.auth.identity per_process: the identity file the run "
+                                                   "issued this agent (the run prints the path)")
     p.set_defaults(func=_cmd_agent)
 
     p = sub.add_parser("router", help="a zenoh router for runs across hosts (transport.mode: client)")
@@ -345,8 +349,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--at", default="0", help="with --screenshots: comma-separated frames (default 0)")
     p.set_defaults(func=_cmd_view)
 
-    p = sub.add_parser("bench", help="benchmarks: sensors | models | comm | run | env | placement")
-    p.add_argument("what", choices=["sensors", "models", "comm", "run", "env", "placement"])
+    p = sub.add_parser("bench", help="benchmarks: sensors | models | comm | run | env | placement | flood")
+    p.add_argument("what", choices=["sensors", "models", "comm", "run", "env", "placement", "flood"])
     p.add_argument("rest", nargs=argparse.REMAINDER, help="options passed to the benchmark (see its --help)")
     p.set_defaults(func=_cmd_bench)
     return parser

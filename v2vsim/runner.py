@@ -38,6 +38,8 @@ from pathlib import Path
 from agents.common import agent_argv
 from agents.progress import ENV as PROGRESS_ENV
 from agents.progress import ProgressDisplay, parse_record
+from v2vsim.comm.identity import Identity, write_identity_file
+from v2vsim.comm.identity import issue as issue_identities
 from v2vsim.comm.transport import TransportError, free_ports, loopback_endpoint, open_session
 from v2vsim.config import ConfigError, Scenario, check_output_dir
 from v2vsim.perception.build import check_scenario, runnable_methods
@@ -132,11 +134,19 @@ def run(sc: Scenario, out: Path, frames: int | None = None, remote_cavs: tuple[s
     if dropped:
         print(f"v2vsim: note: {', '.join(dropped)} left out: early fusion ships LiDAR points and this run's "
               f"modality is {sc.perception.modality}", file=sys.stderr)
+    # comm.auth.identity per_process: the runner is the run's authority (v2vsim/comm/identity.py)
+    identities = issue_identities(run_id, ["driver.main", *(f"cav.{c}" for c in cavs), *(f"ego.{e}" for e in egos)]
+                                  ) if sc.comm.auth.identity == "per_process" else {}
     if remote_cavs:
         print("v2vsim: waiting for remote CAVs; on their hosts run:", file=sys.stderr)
         for c in remote_cavs:
+            ident = ""
+            if identities:  # carried to the agent's host by the operator, never over the bus
+                path = out / "identity" / f"cav.{c}.json"
+                write_identity_file(path, identities[f"cav.{c}"])
+                ident = f"--identity {path} "
             print(f"  v2vsim agent {sc.source} --cav {c} --run-id {run_id} --cavs {','.join(cavs)} "
-                  f"--egos {','.join(egos)} --frames {frames} " + " ".join(f"--set {o}" for o in overrides),
+                  f"--egos {','.join(egos)} --frames {frames} {ident}" + " ".join(f"--set {o}" for o in overrides),
                   file=sys.stderr)
     display = ProgressDisplay(frames, sc.rate_hz, [f"ego.{e}" for e in egos])
     children: list[Child] = []
@@ -149,7 +159,8 @@ def run(sc: Scenario, out: Path, frames: int | None = None, remote_cavs: tuple[s
             endpoints = plan_endpoints(sc, procs)
             picked = {n for n, ep in endpoints.items() if ep and ep not in sc.transport.listen}
             children = []
-            _start(children, sc, procs, endpoints, picked, overrides, run_id, cavs, egos, frames, out, display)
+            _start(children, sc, procs, endpoints, picked, overrides, run_id, cavs, egos, frames, out, display,
+                   identities)
             try:
                 code = _watch(children, display, failures)
                 break
@@ -186,9 +197,11 @@ def run(sc: Scenario, out: Path, frames: int | None = None, remote_cavs: tuple[s
 
 def _start(children: list[Child], sc: Scenario, procs: list[str], endpoints: dict[str, str], picked: set[str],
            overrides: list[str], run_id: str, cavs: list[str], egos: list[str], frames: int, out: Path,
-           display: ProgressDisplay) -> None:
+           display: ProgressDisplay, identities: dict[str, Identity]) -> None:
     """Start every process (appending to `children` as it goes, so that Ctrl-C stops those already up),
-    then one stderr reader per child (threads only after the forks: see `die_with_parent`)."""
+    then one stderr reader per child (threads only after the forks: see `die_with_parent`). Under
+    comm.auth.identity per_process each child reads its identity from its stdin pipe: not in its argv (ps
+    shows that), not in a file (another user process could read it)."""
     env = dict(os.environ, PYTHONUNBUFFERED="1", **{PROGRESS_ENV: "records"})
     setup = die_with_parent(os.getpid())
     for name in procs:
@@ -196,11 +209,16 @@ def _start(children: list[Child], sc: Scenario, procs: list[str], endpoints: dic
         module = {"driver": "agents.driver", "cav": "agents.cav", "ego": "agents.ego"}[role]
         argv = agent_argv(sc.source, overrides, run_id, endpoints[name],
                           [ep for n, ep in endpoints.items() if n != name and ep], cavs, egos, frames,
-                          cav="" if role == "driver" else ident, out=str(out))
+                          cav="" if role == "driver" else ident, out=str(out), identity="-" if identities else "")
         # stdout joins stderr: nothing a child writes reaches the terminal except through the runner
-        proc = subprocess.Popen([sys.executable, "-m", module, *argv], env=env, stdin=subprocess.DEVNULL,
+        proc = subprocess.Popen([sys.executable, "-m", module, *argv], env=env,
+                                stdin=subprocess.PIPE if identities else subprocess.DEVNULL,
                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, process_group=0,
                                 preexec_fn=setup)
+        if identities:
+            assert proc.stdin is not None
+            with proc.stdin:
+                proc.stdin.write(identities[name].to_json().encode())
         children.append(Child(name, proc, endpoints[name], name in picked))
     for c in children:
         c.reader = threading.Thread(target=_pump, args=(c, display), name=f"stderr-{c.name}", daemon=True)

@@ -9,11 +9,8 @@ through a zenoh router, the way a process on another host (or an attacker) joins
 from __future__ import annotations
 
 import json
-import signal
-import subprocess
-import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -24,16 +21,14 @@ from agents.common import AgentArgs, Bus
 from v2vsim.comm import transport as T
 from v2vsim.comm.codec import Message, decode, encode
 from v2vsim.comm.control import ControlPolicy, open_sealed, seal
-from v2vsim.config import TransportConfig, load_scenario
+from v2vsim.config import load_scenario
 
+from .conftest import Sessions
 from .test_run import SCENARIO, Run, _metrics
 
 RUN = "hostile-bus"
 KEY = b"a shared secret"
 POLICY = ControlPolicy.for_run(["cav0", "cav1"], ["cav0"])
-Sessions = tuple[zenoh.Session, zenoh.Session, zenoh.Session]
-
-
 # ---- the Bus: control messages signed, verified, filtered, counted ------------------------------
 
 
@@ -44,30 +39,6 @@ def _wait(cond: Callable[[], object], timeout: float = 10.0) -> bool:
             return True
         time.sleep(0.02)
     return False
-
-
-def _listening(peers: list[str]) -> tuple[zenoh.Session, str]:
-    for attempt in range(5):  # free_port can race with another process: take another one
-        port = T.free_port()
-        try:
-            return T.open_session(TransportConfig(), port, peers=peers), T.loopback_endpoint(port)
-        except T.TransportError:
-            if attempt == 4:
-                raise
-    raise AssertionError("unreachable")
-
-
-@pytest.fixture
-def sessions() -> Iterator[Sessions]:
-    """The ego's session, the driver's, and an attacker's linked to both (peers do not forward)."""
-    ego, ego_ep = _listening([])
-    driver, driver_ep = _listening([ego_ep])
-    attacker = T.open_session(TransportConfig(), peers=[ego_ep, driver_ep])
-    try:
-        yield ego, driver, attacker
-    finally:
-        for s in (attacker, driver, ego):
-            s.close()
 
 
 def _matched(session: zenoh.Session, key: str) -> T.Publisher:
@@ -257,6 +228,20 @@ def test_the_ego_stops_by_itself_when_the_driver_dies(monkeypatch: pytest.Monkey
     assert time.monotonic() - t0 >= 0.25
 
 
+def test_every_wait_for_the_driver_is_bounded(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 34 item 2: the ego waited for a world forever when the driver, alive, sent none (a fake token had
+    started the run before the ego listened). Now the wait ends with a reason the ego writes as its status."""
+    import agents.ego_mailbox as mailbox
+
+    monkeypatch.setattr(mailbox, "HANG_TIMEOUT_S", 0.3)
+    monkeypatch.setattr(mailbox, "START_TIMEOUT_S", 0.6)
+    box = mailbox.Mailbox()
+    t0 = time.monotonic()
+    assert mailbox.wait_world(box, DriverState(gone=False), 0, False) == "no world for 0.6 s"  # frame 0
+    assert mailbox.wait_world(box, DriverState(gone=False), 5, False) == "no world for 0.3 s"
+    assert time.monotonic() - t0 < 3
+
+
 def test_side_channels_are_bounded_and_not_counted_as_v2v() -> None:
     """vis and scan (recording) messages longer than their bound are not kept, and, not being V2V
     messages, never show up in comm.rejected; an oversized V2V message is counted."""
@@ -269,23 +254,57 @@ def test_side_channels_are_bounded_and_not_counted_as_v2v() -> None:
     box.put("scan", "cav1", struct.pack("<q", 3) + b"x" * 10)
     box.put("vis", "cav1", b"{" * 60)
     box.put("features", "cav1", b"y" * 200)
-    assert list(box.raw) == [("scan", 3)] and box.rejected == [("features", "size_mismatch")]
+    assert list(box.raw) == [("scan", 3)] and box.rejected == {("features", "size_mismatch"): 1}
+
+
+def _feature_bytes(sender: str, frame: int, key: bytes | None = None, fill: float = 0.0) -> bytes:
+    msg = Message(kind="features", run_id=RUN, sender_id=sender, frame=frame, capture_time=frame / 10,
+                  sender_pose=(0.0, 0.0, 0.0, 0.0), payload=np.full((4, 2, 2), fill, np.float16))
+    return encode(msg, key)
+
+
+def test_the_mailbox_holds_only_what_could_be_fused() -> None:
+    """Issue 34 items 3-4: messages for frames beyond the pipeline's window, forged, foreign, replayed or
+    duplicated are dropped on arrival and counted by reason; what is held stays bounded under any flood."""
+    import agents.ego_mailbox as mailbox
+    from v2vsim.comm.codec import KindSpec
+    from v2vsim.comm.wire_spec import EgoDecoder
+
+    decoder = EgoDecoder({"features": KindSpec((4, 2, 2))}, RUN, frozenset({"cav0", "cav1"}), KEY)
+    window = mailbox.Window(ahead=3, behind=6)  # pipeline 1 at 10 Hz, max_age 500 ms
+    box = mailbox.Mailbox({"features": 10_000}, window=window,
+                          check=lambda kind, sender, data: decoder.check_arrival(kind, data, sender))
+    box.put("features", "cav1", _feature_bytes("cav1", 0, KEY))  # the genuine first frame: kept
+    box.put("features", "cav1", _feature_bytes("cav1", 0, KEY))  # played back: replayed
+    box.put("features", "cav1", _feature_bytes("cav1", 0, KEY, 1.0))  # another one for its slot: duplicate
+    box.put("features", "cav1", _feature_bytes("cav1", 1, b"guessed"))  # forged: never takes cav1's slot
+    box.put("features", "cav1", _feature_bytes("cav1", 1))  # unsigned
+    box.put("features", "cav1", _feature_bytes("cav0", 1, KEY))  # cav0's message under cav1's key
+    box.put("features", "cav1", _feature_bytes("cav9", 1, KEY))  # nobody of this run
+    box.put("features", "cav1", b"V2VS")  # too short to be anything
+    for f in range(1, 3001):  # a flood for the frames ahead: nothing fused yet, so frames up to -1 + 3 are in
+        box.put("features", "cav0", _feature_bytes("cav0", f, KEY))
+    assert box.pending() == 3 and sorted(box.raw) == [("features", 0), ("features", 1), ("features", 2)]
+    want = {"replayed": 1, "duplicate": 1, "bad_signature": 1, "unsigned": 1, "unknown_sender": 2,
+            "truncated": 1, "out_of_window": 2998}
+    assert {r: n for (_, r), n in box.rejected.items()} == want
+    # the window moves with the frames fused; a slot once held stays held (a later replay is refused)
+    with box.cond:
+        box.raw.clear()
+        box.mark_collected(5)
+    box.put("features", "cav0", _feature_bytes("cav0", 8, KEY))  # 5 + 3: in
+    box.put("features", "cav0", _feature_bytes("cav0", 9, KEY))  # out
+    box.put("features", "cav0", _feature_bytes("cav0", 2, KEY))  # fused at frame 2 already: replayed
+    box.put("features", "cav1", _feature_bytes("cav1", 4, KEY))  # late but still fusable: kept
+    assert sorted(box.raw) == [("features", 4), ("features", 8)]
+    assert box.rejected[("features", "out_of_window")] == 2999 and box.rejected[("features", "replayed")] == 2
+    with box.cond:
+        box.mark_collected(20)
+    box.put("features", "cav1", _feature_bytes("cav1", 13, KEY))  # older than 20 - 6: can only be stale
+    assert box.rejected[("features", "out_of_window")] == 3000 and box.pending() == 2
 
 
 # ---- end to end, through a router ---------------------------------------------------------------
-
-
-@pytest.fixture
-def router() -> Iterator[str]:
-    endpoint = f"tcp/127.0.0.1:{T.free_port()}"
-    proc = subprocess.Popen([sys.executable, "-m", "v2vsim.cli", "router", "--listen", endpoint],
-                            stderr=subprocess.PIPE, text=True)
-    try:
-        assert "listening" in proc.stderr.readline()  # type: ignore[union-attr]
-        yield endpoint
-    finally:
-        proc.send_signal(signal.SIGINT)
-        proc.wait(timeout=10)
 
 
 def _client(endpoint: str) -> zenoh.Session:
@@ -322,15 +341,16 @@ def test_hostile_messages_neither_crash_nor_end_a_run(tmp_path: Path, router: st
         outputs = T.Subscriber(session, "v2vsim/hostile1/outputs/cav1")
         acks = T.Subscriber(session, "v2vsim/hostile1/ack/*")
         legit = decode(_next(outputs, run).data, key=key)
-        # (a) cav1's outputs five frames on, without boxes: the newest cav1 outputs when the ego fuses
-        # (zeros, so it is small and arrives before the real one)
-        f = legit.frame + 5
+        ack = _next(acks, run).data
+        # (a) cav1's outputs for the last frame the ego's window admits (acked + transport.pipeline 2 + 2: the
+        # driver has not published that world yet), without boxes: the newest cav1 outputs when the ego
+        # fuses (zeros, so it is small and arrives before the real one)
+        f = json.loads(open_sealed(key, "hostile1", "ack", "cav0", ack).payload)["frame"] + 4
         assert f + 1 < frames
         rogue = Message(kind="outputs", run_id="hostile1", sender_id="cav1", frame=f, capture_time=f / 10,
                         sender_pose=legit.sender_pose, payload=np.zeros_like(legit.payload), compression="zlib")
         _matched(session, "v2vsim/hostile1/outputs/cav1").put(encode(rogue, key))
         # (b) the issue's 2 bytes on the done key, and a real ack played back as done and as an ack
-        ack = _next(acks, run).data
         _matched(session, "v2vsim/hostile1/done/main").put(b"{}")
         _matched(session, "v2vsim/hostile1/done/cav0").put(ack)
         _matched(session, "v2vsim/hostile1/ack/cav0").put(ack)
@@ -338,7 +358,8 @@ def test_hostile_messages_neither_crash_nor_end_a_run(tmp_path: Path, router: st
     m = _metrics(out)
     assert m["frames"] == frames and m["status"] == "complete", m["status"]
     comm = m["comm"]
-    assert comm["by_kind"]["outputs"]["rejected_reasons"] == {"missing_extra": 1}
+    # cav1's real outputs for frame f came second: kept out as a duplicate, never counted twice
+    assert comm["by_kind"]["outputs"]["rejected_reasons"] == {"missing_extra": 1, "duplicate": 1}
     assert comm["by_kind"]["control"]["rejected_reasons"] == {"unsigned": 1, "bad_signature": 1}
     assert {"missing_extra": 1, "unsigned": 1, "bad_signature": 1}.items() <= comm["rejected_reasons"].items()
     log = "".join(run.log)

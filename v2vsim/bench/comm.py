@@ -25,6 +25,7 @@ import zenoh
 
 from v2vsim.comm import codec
 from v2vsim.comm import transport as T
+from v2vsim.comm.identity import issue
 from v2vsim.config import TransportConfig
 
 SHAPES = {"feat64": (64, 32, 32), "feat128": (128, 32, 32)}
@@ -111,10 +112,12 @@ def main(argv: list[str] | None = None) -> int:
 
     results: dict[str, dict[str, float]] = {}
     key = os.urandom(32)
+    ids = issue("bench", ["cav.cav1", "ego.cav0"])  # comm.auth.identity per_process
     for name, shape in SHAPES.items():
         m = _msg(shape)
         data = codec.encode(m)
         signed = codec.encode(m, key)
+        by_cav1 = codec.encode(m, ids["cav.cav1"])
         zm, m32 = _msg(shape, compression="zlib"), _msg(shape, dtype=np.float32)
         zdata = codec.encode(zm)
         results[name] = {
@@ -125,6 +128,9 @@ def main(argv: list[str] | None = None) -> int:
             "decode_ms": _timeit(lambda d=data: codec.decode(d, known_senders={"cav1"}), args.reps),
             "encode_hmac_ms": _timeit(lambda m=m: codec.encode(m, key), args.reps),
             "decode_hmac_ms": _timeit(lambda d=signed: codec.decode(d, key=key), args.reps),
+            "encode_ed25519_ms": _timeit(lambda m=m: codec.encode(m, ids["cav.cav1"]), args.reps),
+            "decode_ed25519_ms": _timeit(lambda d=by_cav1: codec.decode(d, key=ids["ego.cav0"]), args.reps),
+            "arrival_ed25519_ms": _timeit(lambda d=by_cav1: codec.check_arrival(d, key=ids["ego.cav0"]), args.reps),
             "encode_zlib_ms": _timeit(lambda m=zm: codec.encode(m), args.reps // 4),
             "decode_zlib_ms": _timeit(lambda d=zdata: codec.decode(d), args.reps // 4),
         }
@@ -193,12 +199,15 @@ def main(argv: list[str] | None = None) -> int:
         session.close()
 
     print(f"{'':8} {'bytes':>8} {'enc ms':>7} {'enc f32':>7} {'dec ms':>7} {'enc+hmac':>8} "
-          f"{'dec+hmac':>8} {'zlib B':>8} {'enc zlib':>8} {'dec zlib':>8}")
+          f"{'dec+hmac':>8} {'enc+ed':>7} {'dec+ed':>7} {'arr ed':>7} {'zlib B':>8} {'enc zlib':>8} {'dec zlib':>8}")
     for name in SHAPES:
         r = results[name]
         print(f"{name:8} {r['bytes']:8.0f} {r['encode_ms']:7.3f} {r['encode_f32_ms']:7.3f} {r['decode_ms']:7.3f} "
-              f"{r['encode_hmac_ms']:8.3f} {r['decode_hmac_ms']:8.3f} {r['bytes_zlib']:8.0f} "
+              f"{r['encode_hmac_ms']:8.3f} {r['decode_hmac_ms']:8.3f} {r['encode_ed25519_ms']:7.3f} "
+              f"{r['decode_ed25519_ms']:7.3f} {r['arrival_ed25519_ms']:7.3f} {r['bytes_zlib']:8.0f} "
               f"{r['encode_zlib_ms']:8.3f} {r['decode_zlib_ms']:8.3f}")
+    print("(+ed: signed by the sending process's Ed25519 key, comm.auth.identity per_process; arr ed: the check on "
+          "arrival, signature included)")
     print(f"\nzenoh shared memory: {'off' if args.no_shm else 'on (same-host default)'}")
     print(f"round trip, 64 B bare zenoh: {results['small']['rtt_bare_ms']:.3f} ms (median)")
     print(f"{'':8} {'rtt bare':>9} {'rtt v2v':>9} {'MB/s bare':>10} {'MB/s v2v':>9} {'msg/s bare':>10} "

@@ -8,7 +8,10 @@ Layout (little endian), version 1::
     sender  "<H" length + utf-8 bytes
     arrays  n_arrays x ("<B" name length + utf-8 name, "<BB" dtype, ndim, "<ndim I" shape)
     payload "<I" length + the arrays' bytes back to back (zlib-compressed as one block if compressed)
-    tag     32 bytes hmac-sha256 over everything before it (only when flags & FLAG_SIGNED)
+    tag     32 bytes hmac-sha256 under the run key over everything before it (only when flags & FLAG_SIGNED),
+            or 64 bytes, the sending process's Ed25519 signature over everything before it (only when
+            flags & FLAG_IDENTITY; comm.auth.identity per_process, v2vsim.comm.identity): the signer is
+            the CAV agent the sender id names, checked against the run's trust list
 
 Array 0 is the message's `payload`; the others are `extras` (late-fusion boxes, say).
 Dtype codes: 1 float16, 2 float32, 3 uint16, 4 uint32. The payload always has its kind's
@@ -51,6 +54,7 @@ from collections.abc import Collection, Mapping
 
 import numpy as np
 
+from v2vsim.comm.identity import Identity, data_signer
 from v2vsim.comm.message import (
     _COMPRESSION_NAMES,
     _DTYPE_NAMES,
@@ -61,6 +65,7 @@ from v2vsim.comm.message import (
     CELLS,
     COMPRESSION_CODES,
     DTYPE_CODES,
+    FLAG_IDENTITY,
     FLAG_SIGNED,
     KIND_CODES,
     KIND_DTYPES,
@@ -68,6 +73,7 @@ from v2vsim.comm.message import (
     MAX_NDIM,
     MAX_PAYLOAD_BYTES,
     REASONS,
+    SIG_LEN,
     TAG_LEN,
     VERSION,
     AtMost,
@@ -82,9 +88,10 @@ from v2vsim.comm.message import (
 )
 
 __all__ = [
-    "CELLS", "COMPRESSION_CODES", "DTYPE_CODES", "FLAG_SIGNED", "KIND_CODES", "KIND_DTYPES", "MAGIC", "MAX_NDIM",
-    "MAX_PAYLOAD_BYTES", "REASONS", "TAG_LEN", "VERSION", "AtMost", "Compression", "Dim", "Kind", "KindSpec",
-    "Message", "RejectedMessage", "ShapeSpec", "decode", "encode", "encoded_size_hint",
+    "CELLS", "COMPRESSION_CODES", "DTYPE_CODES", "FLAG_IDENTITY", "FLAG_SIGNED", "KIND_CODES", "KIND_DTYPES",
+    "MAGIC", "MAX_NDIM", "MAX_PAYLOAD_BYTES", "REASONS", "SIG_LEN", "TAG_LEN", "VERSION", "AtMost", "Compression",
+    "Dim", "Kind", "KindSpec", "Message", "RejectedMessage", "ShapeSpec", "Signer", "check_arrival", "decode",
+    "encode", "encoded_size_hint",
 ]
 
 _U8 = struct.Struct("<B")
@@ -110,8 +117,14 @@ def _utf8(s: str, what: str, limit: int) -> bytes:
     return b
 
 
-def encode(msg: Message, key: bytes | None = None, *, check_finite: bool = True) -> bytes:
-    """Serialise `msg` (casting the payload to its kind's wire dtype); sign it when `key` is given.
+Signer = bytes | Identity
+"""What signs and checks messages under comm.auth: the run's shared key (hmac-sha256: membership), or a
+process's Identity (Ed25519: who; v2vsim.comm.identity)."""
+
+
+def encode(msg: Message, key: Signer | None = None, *, check_finite: bool = True) -> bytes:
+    """Serialise `msg` (casting the payload to its kind's wire dtype); sign it when `key` is given (an
+    Identity signs as its own process, which must be the CAV agent of msg.sender_id).
 
     Extras keep a wire dtype (float16/32, uint16/32); any other dtype is cast to float32, so
     indices must already be uint16/uint32 (v2vsim.comm.sparse.index_dtype) to stay integers.
@@ -143,7 +156,9 @@ def encode(msg: Message, key: bytes | None = None, *, check_finite: bool = True)
 
     parts: list[bytes | memoryview] = []
     x, y, z, yaw = (float(v) for v in msg.sender_pose)
-    flags = FLAG_SIGNED if key is not None else 0
+    flags = 0 if key is None else FLAG_IDENTITY if isinstance(key, Identity) else FLAG_SIGNED
+    if isinstance(key, Identity) and key.name != data_signer(msg.sender_id):
+        raise ValueError(f"{key.name} cannot sign a message of sender {msg.sender_id!r}")
     parts.append(_FIXED.pack(MAGIC, VERSION, KIND_CODES[msg.kind], flags, COMPRESSION_CODES[msg.compression],
                              int(msg.channel_compression), len(arrays), int(msg.frame),
                              float(msg.capture_time), x, y, z, yaw))
@@ -165,7 +180,9 @@ def encode(msg: Message, key: bytes | None = None, *, check_finite: bool = True)
         body = zlib.compress(body, 1)  # level 1: float payloads gain little from harder work
     parts += [_U32.pack(len(body)), body]
     data = b"".join(parts)
-    if key is not None:
+    if isinstance(key, Identity):
+        data += key.sign(data)
+    elif key is not None:
         data += hmac.new(key, data, hashlib.sha256).digest()
     return data
 
@@ -201,15 +218,77 @@ def _shape_ok(shape: tuple[int, ...], spec: ShapeSpec) -> bool:
         s is None or (d <= s.n if isinstance(s, AtMost) else s == d) for d, s in zip(shape, spec, strict=True))
 
 
-def decode(data: bytes | bytearray | memoryview, *, key: bytes | None = None,
+def check_arrival(data: bytes, *, key: Signer | None = None, run_id: str | None = None,
+                  known_senders: Collection[str] | None = None) -> tuple[int, str]:
+    """(frame, sender id) of a message as it comes off the transport, after the checks that cost
+    next to nothing or must come first: magic, version, the fixed header, the signature when `key`
+    is given (so a forged message never takes a receiver's buffer), the run and the sender. The
+    payload is not looked at: `decode` does the rest when the message is fused."""
+    try:
+        frame, _kind, _flags, _end, r = _authenticated_header(data, key)
+        msg_run, sender = r.text("run id"), r.text("sender id")
+    except RejectedMessage:
+        raise
+    except Exception as e:
+        raise RejectedMessage("bad_header", f"internal: {type(e).__name__}: {e}") from None
+    if run_id is not None and msg_run != run_id:
+        raise RejectedMessage("wrong_run", f"{msg_run!r} != {run_id!r}")
+    if known_senders is not None and sender not in known_senders:
+        raise RejectedMessage("unknown_sender", repr(sender))
+    return frame, sender
+
+
+def _authenticated_header(data: bytes, key: Signer | None) -> tuple[int, int, int, int, _Reader]:
+    """(frame, kind code, flags, end of the signed bytes, a reader after the fixed header): the checks
+    every receiver runs first, the signature included, so unauthenticated bytes go no further."""
+    if len(data) < 5:
+        raise RejectedMessage("truncated", f"{len(data)} bytes")
+    if data[:4] != MAGIC:
+        raise RejectedMessage("bad_magic", repr(data[:4]))
+    if data[4] != VERSION:
+        raise RejectedMessage("bad_version", f"version {data[4]}, this build reads {VERSION}")
+    if len(data) < _FIXED.size:
+        raise RejectedMessage("truncated", f"{len(data)} bytes, the fixed header alone is {_FIXED.size}")
+    flags, frame = data[6], _U32.unpack_from(data, 12)[0]
+    if flags & ~_KNOWN_FLAGS:
+        raise RejectedMessage("bad_header", f"unknown flags 0x{flags:02x}")
+    if flags & FLAG_SIGNED and flags & FLAG_IDENTITY:
+        raise RejectedMessage("bad_header", "two signatures")
+    tag_len = TAG_LEN if flags & FLAG_SIGNED else SIG_LEN if flags & FLAG_IDENTITY else 0
+    end = len(data) - tag_len
+    if end < _FIXED.size:
+        raise RejectedMessage("truncated", "no room for the signature")
+    if isinstance(key, Identity):
+        if not flags & FLAG_IDENTITY:
+            raise RejectedMessage("unsigned", "comm.auth.identity is per_process and the message carries no "
+                                              "process signature")
+        r = _Reader(data, end)
+        r.pos = _FIXED.size
+        r.text("run id")
+        signer = data_signer(r.text("sender id"))
+        if not key.verify(signer, memoryview(data)[:end], memoryview(data)[end:]):
+            raise RejectedMessage("bad_signature", f"not signed by {signer}")
+    elif key is not None:
+        if not flags & FLAG_SIGNED:
+            raise RejectedMessage("unsigned", "comm.auth is on and the message carries no signature")
+        tag = hmac.new(key, memoryview(data)[:end], hashlib.sha256).digest()
+        if not hmac.compare_digest(tag, data[end:]):
+            raise RejectedMessage("bad_signature")
+    r = _Reader(data, end)
+    r.pos = _FIXED.size
+    return frame, data[5], flags, end, r
+
+
+def decode(data: bytes | bytearray | memoryview, *, key: Signer | None = None,
            known_senders: Collection[str] | None = None,
            expected: Mapping[str, ShapeSpec] | None = None,
            run_id: str | None = None,
            spec: Mapping[str, KindSpec] | None = None) -> Message:
     """Parse and validate one message; raise RejectedMessage(reason) on any problem.
 
-    key: when set, the message must carry a valid hmac-sha256 tag ('unsigned' / 'bad_signature');
-         when None, a tag, if present, is stripped without being checked.
+    key: when set, the message must carry a valid hmac-sha256 tag under this run key, or, for an
+         Identity, its sender's process signature ('unsigned' / 'bad_signature'); when None, a tag,
+         if present, is stripped without being checked.
     known_senders: when set, other sender ids are 'unknown_sender'.
     spec: kind -> KindSpec, the strict form a receiver should use: payload shape, required and
          allowed extras, and a bound on every size. Kinds missing from it are 'unexpected_kind'.
@@ -227,7 +306,7 @@ def decode(data: bytes | bytearray | memoryview, *, key: bytes | None = None,
         raise RejectedMessage("bad_header", f"internal: {type(e).__name__}: {e}") from None
 
 
-def _decode(data: bytes | bytearray | memoryview, key: bytes | None, known_senders: Collection[str] | None,
+def _decode(data: bytes | bytearray | memoryview, key: Signer | None, known_senders: Collection[str] | None,
             expected: Mapping[str, ShapeSpec] | None, run_id: str | None,
             spec: Mapping[str, KindSpec] | None) -> Message:
     if spec is not None and len(data) >= 6 and data[5] in _KIND_NAMES and _KIND_NAMES[data[5]] in spec:
@@ -236,31 +315,10 @@ def _decode(data: bytes | bytearray | memoryview, key: bytes | None, known_sende
         if limit is not None and len(data) > limit:
             raise RejectedMessage("size_mismatch", f"{len(data)} bytes, the longest acceptable is {limit}")
     data = bytes(data) if not isinstance(data, bytes) else data
-    if len(data) < 5:
-        raise RejectedMessage("truncated", f"{len(data)} bytes")
-    if data[:4] != MAGIC:
-        raise RejectedMessage("bad_magic", repr(data[:4]))
-    if data[4] != VERSION:
-        raise RejectedMessage("bad_version", f"version {data[4]}, this build reads {VERSION}")
-    if len(data) < _FIXED.size:
-        raise RejectedMessage("truncated", f"{len(data)} bytes, the fixed header alone is {_FIXED.size}")
+    # Authenticate before parsing further, so unauthenticated bytes never reach zlib or numpy.
+    _, _, _, end, r = _authenticated_header(data, key)
     (_, _, kind_code, flags, comp_code, ch_comp, n_arrays, frame, capture_time,
      x, y, z, yaw) = _FIXED.unpack_from(data)
-    if flags & ~_KNOWN_FLAGS:
-        raise RejectedMessage("bad_header", f"unknown flags 0x{flags:02x}")
-    signed = bool(flags & FLAG_SIGNED)
-    end = len(data)
-    if signed:
-        if end < _FIXED.size + TAG_LEN:
-            raise RejectedMessage("truncated", "no room for the signature")
-        end -= TAG_LEN
-    # Authenticate before parsing further, so unauthenticated bytes never reach zlib or numpy.
-    if key is not None:
-        if not signed:
-            raise RejectedMessage("unsigned", "comm.auth is on and the message carries no signature")
-        tag = hmac.new(key, data[:end], hashlib.sha256).digest()
-        if not hmac.compare_digest(tag, data[end:]):
-            raise RejectedMessage("bad_signature")
     if kind_code not in _KIND_NAMES:
         raise RejectedMessage("unknown_kind", f"code {kind_code}")
     kind = _KIND_NAMES[kind_code]
@@ -273,8 +331,6 @@ def _decode(data: bytes | bytearray | memoryview, key: bytes | None, known_sende
     if not all(math.isfinite(v) for v in (capture_time, x, y, z, yaw)):
         raise RejectedMessage("non_finite", "capture time or pose")
 
-    r = _Reader(data, end)
-    r.pos = _FIXED.size
     msg_run = r.text("run id")
     sender = r.text("sender id")
     if run_id is not None and msg_run != run_id:

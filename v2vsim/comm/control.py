@@ -1,5 +1,7 @@
-"""Control traffic between the processes of a run (world, done, ack, start, static, vis, scan, bye):
-who may send what, and, with comm.auth on, an HMAC-SHA256 envelope under the run key.
+"""Control traffic between the processes of a run (world, done, ack, start, static, vis, scan, bye,
+hello): who may send what, and, with comm.auth on, a signed envelope: version 1 an HMAC-SHA256 under the
+run's shared key (membership: any key holder can sign as anyone), version 2 the sending process's own
+Ed25519 signature (comm.auth.identity per_process, v2vsim.comm.identity: a process can sign only as itself).
 
 Without a signature anyone who can reach the bus could end a run with a 2-byte `done`, so
 under comm.auth every control message travels as
@@ -7,14 +9,17 @@ under comm.auth every control message travels as
     "<4sBQB" magic b"V2VC", version, sequence number, sender-name length
     sender name (utf-8, the process name: "driver.main", "cav.<id>", "ego.<id>")
     payload
-    tag: 32 bytes hmac-sha256(key, domain | run id | kind | sender name | sequence | payload)
+    tag: version 1: 32 bytes hmac-sha256(key, domain | run id | kind | sender name | sequence | payload)
+         version 2: 64 bytes, the named sender's Ed25519 signature over the same bytes
 
 The tag covers the run id and the kind, so nothing from another run is accepted and a signed
 `ack` cannot be replayed as `done`; the sequence number (strictly increasing per sender and
 kind, checked by `ReplayGuard`) stops a recorded message from being played back in the same
-run. `ControlPolicy` says which processes may send each kind (world/done/start/static only
-the driver, ack only egos, vis and scan only CAVs); it is applied with and without a key (without one,
-to the sender named in the zenoh key, which is all there is to go on).
+run; a number more than MAX_SEQ_STEP past the last one is refused, so that one forged number cannot
+make the real sender's next messages look replayed. `ControlPolicy` says which processes may send each
+kind (world/done/start/static only the driver, ack only egos, vis and scan only CAVs, hello and bye
+anyone of the run); it is applied with and without a key (without one, to the sender named in the
+zenoh key, which is all there is to go on).
 Failures raise codec.RejectedMessage with a reason from codec.REASONS.
 """
 
@@ -27,12 +32,15 @@ import threading
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
-from v2vsim.comm.codec import TAG_LEN, RejectedMessage
+from v2vsim.comm.codec import SIG_LEN, TAG_LEN, RejectedMessage, Signer
+from v2vsim.comm.identity import Identity
 
-CONTROL_KINDS = frozenset({"world", "done", "ack", "start", "static", "vis", "scan", "bye"})
+CONTROL_KINDS = frozenset({"world", "done", "ack", "start", "static", "vis", "scan", "bye", "hello"})
 DRIVER = "driver.main"
 CTRL_MAGIC = b"V2VC"
-CTRL_VERSION = 1
+CTRL_VERSION = 1  # hmac-sha256 under the shared run key
+CTRL_VERSION_IDENTITY = 2  # the sender's Ed25519 signature
+MAX_SEQ_STEP = 1 << 16  # a sender sends far fewer control messages of one kind between two a receiver hears
 _HEAD = struct.Struct("<4sBQB")
 _DOMAIN = b"v2vsim control v1\0"  # keeps these tags apart from the data messages' tags
 
@@ -54,7 +62,8 @@ class ControlPolicy:
         cav_names = frozenset(f"cav.{c}" for c in cavs)
         ego_names = frozenset(f"ego.{e}" for e in egos)
         return cls({"world": driver, "done": driver, "start": driver, "static": driver,
-                    "ack": ego_names, "vis": cav_names, "scan": cav_names, "bye": driver | cav_names | ego_names})
+                    "ack": ego_names, "vis": cav_names, "scan": cav_names, "bye": driver | cav_names | ego_names,
+                    "hello": driver | cav_names | ego_names})
 
     def allows(self, kind: str, name: str) -> bool:
         return name in self.senders.get(kind, frozenset())
@@ -64,21 +73,30 @@ class ControlPolicy:
         return any(process_id(n) == sender for n in self.senders.get(kind, frozenset()))
 
 
-def _tag(key: bytes, run_id: str, kind: str, sender: str, seq: int, payload: bytes) -> bytes:
-    h = hmac.new(key, _DOMAIN, hashlib.sha256)
+def _signed_bytes(run_id: str, kind: str, sender: str, seq: int, payload: bytes) -> bytes:
+    parts = [_DOMAIN]
     for part in (run_id, kind, sender):
         b = part.encode("utf-8")
-        h.update(struct.pack("<H", len(b)) + b)
-    h.update(struct.pack("<Q", seq))
-    h.update(payload)
-    return h.digest()
+        parts.append(struct.pack("<H", len(b)) + b)
+    parts += [struct.pack("<Q", seq), payload]
+    return b"".join(parts)
 
 
-def seal(key: bytes, run_id: str, kind: str, sender: str, seq: int, payload: bytes) -> bytes:
-    """The signed envelope of one control message from process `sender` (e.g. 'driver.main')."""
+def _tag(key: bytes, run_id: str, kind: str, sender: str, seq: int, payload: bytes) -> bytes:
+    return hmac.new(key, _signed_bytes(run_id, kind, sender, seq, payload), hashlib.sha256).digest()
+
+
+def seal(key: Signer, run_id: str, kind: str, sender: str, seq: int, payload: bytes) -> bytes:
+    """The signed envelope of one control message from process `sender` (e.g. 'driver.main'): under the
+    shared key (version 1) or, for an Identity, with that process's own signature (version 2)."""
     name = sender.encode("utf-8")
     if len(name) > 0xFF:
         raise ValueError(f"process name longer than 255 bytes: {sender[:40]!r}...")
+    if isinstance(key, Identity):
+        if key.name != sender:
+            raise ValueError(f"{key.name} cannot sign as {sender}")
+        return _HEAD.pack(CTRL_MAGIC, CTRL_VERSION_IDENTITY, seq, len(name)) + name + payload + key.sign(
+            _signed_bytes(run_id, kind, sender, seq, payload))
     return _HEAD.pack(CTRL_MAGIC, CTRL_VERSION, seq, len(name)) + name + payload + _tag(
         key, run_id, kind, sender, seq, payload)
 
@@ -90,24 +108,33 @@ class Opened:
     payload: bytes
 
 
-def open_sealed(key: bytes, run_id: str, kind: str, key_sender: str, data: bytes,
+def open_sealed(key: Signer, run_id: str, kind: str, key_sender: str, data: bytes,
                 policy: ControlPolicy | None = None) -> Opened:
-    """Verify an envelope that arrived on v2vsim/<run_id>/<kind>/<key_sender>; RejectedMessage if not."""
+    """Verify an envelope that arrived on v2vsim/<run_id>/<kind>/<key_sender>; RejectedMessage if not.
+    Under an Identity only version 2 (a process signature, checked with the named sender's public key from
+    the trust list) is accepted; under a shared key only version 1."""
     if data[:4] != CTRL_MAGIC:
         raise RejectedMessage("unsigned", "comm.auth is on and the control message carries no envelope")
     if len(data) < _HEAD.size:
         raise RejectedMessage("truncated", f"{len(data)} bytes")
     _, version, seq, nlen = _HEAD.unpack_from(data)
-    if version != CTRL_VERSION:
-        raise RejectedMessage("bad_version", f"control version {version}")
-    if len(data) < _HEAD.size + nlen + TAG_LEN:
+    per_process = isinstance(key, Identity)
+    want = CTRL_VERSION_IDENTITY if per_process else CTRL_VERSION
+    if version != want:
+        raise RejectedMessage("bad_version", f"control version {version}, this run signs with version {want}")
+    tag_len = SIG_LEN if per_process else TAG_LEN
+    if len(data) < _HEAD.size + nlen + tag_len:
         raise RejectedMessage("truncated", f"{len(data)} bytes")
     try:
         sender = data[_HEAD.size:_HEAD.size + nlen].decode("utf-8")
     except UnicodeDecodeError:
         raise RejectedMessage("bad_header", "sender name is not utf-8") from None
-    payload = data[_HEAD.size + nlen:-TAG_LEN]
-    if not hmac.compare_digest(_tag(key, run_id, kind, sender, seq, payload), data[-TAG_LEN:]):
+    payload, tag = data[_HEAD.size + nlen:-tag_len], data[-tag_len:]
+    if isinstance(key, Identity):
+        ok = key.verify(sender, _signed_bytes(run_id, kind, sender, seq, payload), tag)
+    else:
+        ok = hmac.compare_digest(_tag(key, run_id, kind, sender, seq, payload), tag)
+    if not ok:
         raise RejectedMessage("bad_signature", f"{kind} from {sender!r}")
     if process_id(sender) != key_sender or (policy is not None and not policy.allows(kind, sender)):
         raise RejectedMessage("unknown_sender", f"{kind} from {sender!r} under key sender {key_sender!r}")
@@ -126,4 +153,6 @@ class ReplayGuard:
             last = self._last.get((opened.sender, kind), -1)
             if opened.seq <= last:
                 raise RejectedMessage("replayed", f"{kind} #{opened.seq} from {opened.sender!r}, last #{last}")
+            if opened.seq > last + MAX_SEQ_STEP:  # forged far ahead: believing it would silence the real sender
+                raise RejectedMessage("out_of_window", f"{kind} #{opened.seq} from {opened.sender!r}, last #{last}")
             self._last[(opened.sender, kind)] = opened.seq

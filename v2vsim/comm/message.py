@@ -14,9 +14,11 @@ import numpy as np
 
 MAGIC = b"V2VS"
 VERSION = 1
-FLAG_SIGNED = 0x01
-_KNOWN_FLAGS = FLAG_SIGNED
+FLAG_SIGNED = 0x01  # tag: hmac-sha256 under the run's shared key (comm.auth.key_file)
+FLAG_IDENTITY = 0x02  # tag: the sending process's Ed25519 signature (comm.auth.identity per_process)
+_KNOWN_FLAGS = FLAG_SIGNED | FLAG_IDENTITY
 TAG_LEN = 32  # hmac-sha256
+SIG_LEN = 64  # Ed25519
 MAX_PAYLOAD_BYTES = 256 << 20  # declared sizes above this are refused before any allocation (no spec given)
 MAX_NDIM = 8
 
@@ -91,7 +93,7 @@ class KindSpec:
         if raw is None:
             return None
         arrays = (1 + len(self.extras)) * (1 + 0xFF + 2 + 4 * MAX_NDIM)
-        return _FIXED.size + 2 * (2 + 0xFFFF) + arrays + 4 + raw + raw // 1000 + 64 + TAG_LEN
+        return _FIXED.size + 2 * (2 + 0xFFFF) + arrays + 4 + raw + raw // 1000 + 64 + SIG_LEN
 
 
 def _max_elems(spec: ShapeSpec) -> int | None:
@@ -106,10 +108,12 @@ def _max_elems(spec: ShapeSpec) -> int | None:
 REASONS = ("truncated", "bad_magic", "bad_version", "bad_header", "unknown_kind", "unknown_dtype",
            "unexpected_kind", "shape_mismatch", "size_mismatch", "decompress_error", "non_finite",
            "unknown_sender", "wrong_run", "unsigned", "bad_signature", "missing_extra", "unexpected_extra",
-           "replayed", "bad_indices")
+           "replayed", "bad_indices", "out_of_window", "duplicate")
 """Stable rejection counter keys. missing_extra / unexpected_extra: the extras differ from the
-KindSpec; replayed: a signed control message (v2vsim.comm.control) seen before; bad_indices:
-a "sparse" message's cells are not integers, one per payload row, in range, strictly increasing."""
+KindSpec; replayed: a control message (v2vsim.comm.control) or a V2V message (same sender, kind and
+frame) seen before; bad_indices: a "sparse" message's cells are not integers, one per payload row, in
+range, strictly increasing; out_of_window: a V2V message for a frame the run cannot have reached yet
+(agents/ego_mailbox.py); duplicate: a second, different message for a (sender, kind, frame) already held."""
 
 
 class RejectedMessage(Exception):

@@ -105,8 +105,8 @@ class CommStats:
     def record_stale(self) -> None:
         self.stale += 1
 
-    def record_rejected(self, reason: str) -> None:
-        self.rejected_reasons[reason] += 1
+    def record_rejected(self, reason: str, n: int = 1) -> None:
+        self.rejected_reasons[reason] += n
 
     def record_fused(self, latency_s: float) -> None:
         """A message is fused for the first time; it spent latency_s on the channel (seconds, the run's clock)."""

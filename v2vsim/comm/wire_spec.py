@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 from models.heads import MAX_DETECTIONS
 from models.presets import get_preset
-from v2vsim.comm.codec import CELLS, AtMost, KindSpec, Message, RejectedMessage, decode
+from v2vsim.comm.codec import CELLS, AtMost, KindSpec, Message, RejectedMessage, check_arrival, decode
 from v2vsim.comm.stats import CommStats
 from v2vsim.config import Scenario
 
@@ -81,21 +81,35 @@ class EgoDecoder:
         limits = [ks.max_message_bytes(k) for k, ks in self._accepted(kind).items()]
         return 0 if not limits or None in limits else max(limits)  # type: ignore[type-var]
 
-    def decode(self, kind: str, data: bytes, sender: str | None = None) -> Message:
+    def decode(self, kind: str, data: bytes, sender: str | None = None, *, verified: bool = False) -> Message:
         """The message that arrived on `kind`'s key from `sender` (the key's last chunk, if known),
-        or RejectedMessage(reason). The "features" key also carries "sparse" messages (KEY_KINDS)."""
+        or RejectedMessage(reason). The "features" key also carries "sparse" messages (KEY_KINDS).
+        verified: these very bytes passed check_arrival, signature included (not checked twice)."""
         accepted = self._accepted(kind)
         if not accepted:
             raise RejectedMessage("unexpected_kind", f"nothing of kind {kind!r} is expected")
-        msg = decode(data, key=self.key, known_senders=self.senders, run_id=self.run_id, spec=accepted)
+        msg = decode(data, key=None if verified else self.key, known_senders=self.senders, run_id=self.run_id,
+                     spec=accepted)
         if sender is not None and msg.sender_id != sender:
             raise RejectedMessage("unknown_sender", f"{msg.sender_id!r} published under {sender!r}")
         return msg
 
-    def receive(self, kind: str, data: bytes, sender: str | None, stats: Iterable[CommStats]) -> Message | None:
+    def check_arrival(self, kind: str, data: bytes, sender: str) -> int:
+        """The frame of a message that just came off `kind`'s key from `sender`, after the cheap checks
+        (header, signature under comm.auth, run, sender: codec.check_arrival); RejectedMessage otherwise.
+        The ego runs this on zenoh's thread so that nothing forged or foreign takes a slot in its mailbox."""
+        if not self._accepted(kind):
+            raise RejectedMessage("unexpected_kind", f"nothing of kind {kind!r} is expected")
+        frame, claimed = check_arrival(data, key=self.key, run_id=self.run_id, known_senders=self.senders)
+        if claimed != sender:
+            raise RejectedMessage("unknown_sender", f"{claimed!r} published under {sender!r}")
+        return frame
+
+    def receive(self, kind: str, data: bytes, sender: str | None, stats: Iterable[CommStats], *,
+                verified: bool = False) -> Message | None:
         """decode(), with a rejection counted (by reason) in every `stats` instead of raised."""
         try:
-            return self.decode(kind, data, sender)
+            return self.decode(kind, data, sender, verified=verified)
         except RejectedMessage as e:
             for s in stats:
                 s.record_rejected(e.reason)

@@ -63,6 +63,9 @@ def _check_egos(sc: Scenario, loader: _Loader) -> None:
 def _check_key_file(sc: Scenario, loader: _Loader) -> None:
     """An empty key would turn signing on with a key anyone can sign with: refuse it here, in one line."""
     path = sc.comm.auth.key_file
+    if path is not None and sc.comm.auth.identity == "per_process":
+        loader.fail("comm.auth", "key_file and identity: per_process are two ways to sign; choose one "
+                    "(per_process: each process signs as itself; key_file: one shared key)")
     if path is None:
         return
     try:

@@ -132,7 +132,13 @@ class PoseNoiseConfig:
 
 @dataclass(frozen=True)
 class AuthConfig:
+    """Signed messages. key_file: one secret every process shares (hmac-sha256): proves membership of the
+    run, not who sent a message. identity per_process: each process signs with its own Ed25519 key, issued
+    by the runner for this run (v2vsim/comm/identity.py): a process can sign only as itself. One or the
+    other, not both."""
+
     key_file: str | None = _f(None, "path to a secret key file, relative to the YAML", path="file?")
+    identity: Literal["off", "per_process"] = "off"
 
 
 @dataclass(frozen=True)

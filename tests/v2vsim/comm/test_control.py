@@ -93,5 +93,5 @@ def test_every_mutation_is_rejected() -> None:
 
 
 def test_control_kinds() -> None:
-    assert {"world", "done", "ack", "static", "start", "vis", "scan", "bye"} == CONTROL_KINDS
+    assert {"world", "done", "ack", "static", "start", "vis", "scan", "bye", "hello"} == CONTROL_KINDS
     assert not {"features", "points", "outputs"} & CONTROL_KINDS
