@@ -77,7 +77,7 @@ class AfterFusion:
                 continue  # drain: the main thread raises the first failure
             try:
                 with self.timer.stage("scoring"):
-                    score_all(job.preds, job.gt, job.boxes_gt, self.scores)
+                    score_all(job.preds, job.gt, job.boxes_gt, self.scores, frame=job.k)
                     for m, n in job.sent.items():
                         self.scores[m].bytes.append(n)
                 if self.recorder is not None:

@@ -18,12 +18,14 @@ from v2vsim.perception.fuse import FusionInputs, Prediction, predict
 
 
 def fuse_and_score(models: dict[str, nn.Module], inp: FusionInputs, cells: int, gt: dict[str, np.ndarray],
-                   boxes_gt: np.ndarray, scores: dict[str, MethodScore]) -> dict[str, Prediction]:
+                   boxes_gt: np.ndarray, scores: dict[str, MethodScore], frame: int | None = None
+                   ) -> dict[str, Prediction]:
     """Predict with every method that has input and add its scores; returns the predictions.
 
-    gt: "dynamic", "visible", "road", "lane" masks on the ego grid; boxes_gt [K, 5] scored boxes."""
+    gt: "dynamic", "visible", "road", "lane" masks on the ego grid; boxes_gt [K, 5] scored boxes; frame: the
+    frame's key (see `score_all`)."""
     preds = predict_all(models, inp, cells)
-    score_all(preds, gt, boxes_gt, scores)
+    score_all(preds, gt, boxes_gt, scores, frame)
     return preds
 
 
@@ -38,11 +40,13 @@ def predict_all(models: dict[str, nn.Module], inp: FusionInputs, cells: int) -> 
 
 
 def score_all(preds: dict[str, Prediction], gt: dict[str, np.ndarray], boxes_gt: np.ndarray,
-              scores: dict[str, MethodScore]) -> None:
-    """Add one frame's predictions to the running scores (segmentation IoU, AP, fusion time)."""
+              scores: dict[str, MethodScore], frame: int | None = None) -> None:
+    """Add one frame's predictions to the running scores (segmentation IoU, AP, fusion time). Only the
+    methods in `preds` are scored (one without input on this frame is not), so `frame`, the frame's key,
+    is what pairs methods frame by frame afterwards; None: each method counts its own scored frames."""
     for m, pred in preds.items():
         s = scores[m]
-        s.add_segmentation(pred.probs, gt)
+        s.add_segmentation(pred.probs, gt, frame)
         s.fusion_ms.append(pred.ms)
         if s.boxes is not None and pred.boxes is not None:
             s.boxes.add(pred.boxes[:, :5], pred.boxes[:, 5], boxes_gt)

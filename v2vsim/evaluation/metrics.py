@@ -47,8 +47,12 @@ class IouAccumulator:
     union: int = 0
     per_frame: list[float] = field(default_factory=list)  # IoU of each frame with a non-empty union
     counts: list[tuple[int, int]] = field(default_factory=list)  # (intersection, union) of every frame
+    frame_ids: list[int] = field(default_factory=list)  # the frame each entry of `counts` belongs to
 
-    def add(self, pred: np.ndarray, truth: np.ndarray, ignore: np.ndarray | None = None) -> None:
+    def add(self, pred: np.ndarray, truth: np.ndarray, ignore: np.ndarray | None = None,
+            frame: int | None = None) -> None:
+        """Add one frame; `frame`: its key (the ego's frame index), by default the number of frames added
+        before it. Methods are paired frame by frame on these keys (`paired_counts`)."""
         if ignore is not None:
             keep = ~ignore
             pred, truth = pred & keep, truth & keep
@@ -57,6 +61,7 @@ class IouAccumulator:
         self.inter += i
         self.union += u
         self.counts.append((i, u))
+        self.frame_ids.append(len(self.frame_ids) if frame is None else frame)
         if u:
             self.per_frame.append(i / u)
 
@@ -75,6 +80,16 @@ class IouAccumulator:
     @property
     def frame_mean(self) -> float | None:
         return float(np.mean(self.per_frame)) if self.per_frame else None
+
+
+def paired_counts(a: IouAccumulator, b: IouAccumulator) -> tuple[np.ndarray, np.ndarray]:
+    """(intersection, union) per frame of `a` and of `b` on the frames both scored, in frame order: [n, 2]
+    each, row t of both the same frame. A method without input on a frame (predict() gave None, e.g. the
+    ego's own message missing in a realtime run) is not scored on it, so position alone does not pair."""
+    ca, cb = dict(zip(a.frame_ids, a.counts, strict=True)), dict(zip(b.frame_ids, b.counts, strict=True))
+    common = sorted(ca.keys() & cb.keys())
+    return (np.array([ca[k] for k in common], dtype=np.int64).reshape(-1, 2),
+            np.array([cb[k] for k in common], dtype=np.int64).reshape(-1, 2))
 
 
 AP_SORTS = ("global", "per_frame")
@@ -167,16 +182,20 @@ class MethodScore:
     bytes: list[int] = field(default_factory=list)
     frames: int = 0
 
-    def add_segmentation(self, probs: dict[str, np.ndarray], gt: dict[str, np.ndarray]) -> None:
-        """probs: 'vehicle', 'road', 'lane' probability maps; gt: 'dynamic', 'visible', 'road', 'lane' masks."""
+    def add_segmentation(self, probs: dict[str, np.ndarray], gt: dict[str, np.ndarray],
+                         frame: int | None = None) -> None:
+        """probs: 'vehicle', 'road', 'lane' probability maps; gt: 'dynamic', 'visible', 'road', 'lane' masks;
+        frame: the frame's key, by default the number of frames this method scored before it (which pairs
+        methods only if every method is scored on every frame)."""
+        key = self.frames if frame is None else frame
         self.frames += 1
         veh = probs["vehicle"] >= THRESHOLD
-        self.vehicle.add(*visible_vehicle_masks(probs["vehicle"], gt))
-        self.vehicle_all.add(veh, gt["dynamic"])
+        self.vehicle.add(*visible_vehicle_masks(probs["vehicle"], gt), frame=key)
+        self.vehicle_all.add(veh, gt["dynamic"], frame=key)
         if "road" in probs:
-            self.road.add(probs["road"] >= THRESHOLD, gt["road"])
+            self.road.add(probs["road"] >= THRESHOLD, gt["road"], frame=key)
         if "lane" in probs:
-            self.lane.add(probs["lane"] >= THRESHOLD, gt["lane"])
+            self.lane.add(probs["lane"] >= THRESHOLD, gt["lane"], frame=key)
 
     def to_json(self, iou_fn: Callable[[np.ndarray, np.ndarray], np.ndarray] | None) -> dict:
         def r(v: float | None) -> float | None:
@@ -198,4 +217,6 @@ class MethodScore:
             "frames": self.frames,
             # per fused frame, in order: what a study needs to resample frames (v2vsim sweep's bootstrap)
             "iou_vehicle_counts": [list(c) for c in self.vehicle.counts],
+            # the frame index of each entry above: methods pair on these (one may miss a frame it had no input for)
+            "iou_vehicle_frames": list(self.vehicle.frame_ids),
         }

@@ -13,13 +13,16 @@ from v2vsim.comm.stats import CommStats
 from v2vsim.comm.tr37885 import expected_delivery
 from v2vsim.comm.wire_spec import message_kind
 from v2vsim.config import ChannelConfig, Scenario
-from v2vsim.evaluation.metrics import MethodScore, neighbour_shares
+from v2vsim.evaluation.block_bootstrap import LEVEL, REPLICATES, paired_difference
+from v2vsim.evaluation.metrics import MethodScore, neighbour_shares, paired_counts
 
 # CoBEVT paper figures (DESIGN.md "Reference figures"): OPV2V camera IoU vehicle/road/lane, LiDAR AP@0.7.
 PAPER_CAMERA = {"none": (37.7, 57.8, 43.7), "fcooper": (52.5, 60.4, 46.5), "attfuse": (51.9, 60.5, 46.2),
                 "v2vnet": (53.5, 60.2, 47.5), "disconet": (52.9, 60.7, 45.8), "cobevt": (60.4, 63.0, 53.0)}
 PAPER_LIDAR_AP70 = {"late": 0.781, "early": 0.800, "attfuse": 0.815, "fcooper": 0.790, "v2vnet": 0.822,
                     "cobevt": 0.861}
+BASELINE = "none"  # no fusion: what every other method's difference is taken against
+VS_NONE = {"iou_vehicle": "vehicle", "iou_road": "road", "iou_lane": "lane"}  # metrics.json key -> accumulator
 
 
 @dataclass
@@ -58,7 +61,8 @@ def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: Comm
         "modality": sc.perception.modality,
         "real_time_factor": round(sim_s / summary.wall_s, 3) if summary.wall_s > 0 else None,
         "comm": comm_doc,
-        "methods": {m: {**scores[m].to_json(iou_fn), **_method_cbr(m, comm, comm_by_kind)}
+        "methods": {m: {**scores[m].to_json(iou_fn), **_method_cbr(m, comm, comm_by_kind),
+                        **({} if m == BASELINE else {"vs_none": vs_none(scores[m], scores.get(BASELINE))})}
                     for m in summary.methods if m in scores},
         "ego": summary.ego,
         "status": summary.status,
@@ -78,6 +82,27 @@ def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: Comm
         "wall_s": round(summary.wall_s, 3),
         "timing": summary.timing,  # the ego's own split of a frame (ms), as `v2vsim bench run` prints it
     }
+
+
+def vs_none(score: MethodScore, base: MethodScore | None) -> dict | None:
+    """A method's IoU minus no fusion's on the frames both were scored on, per metric, with a 95% circular
+    moving-block bootstrap interval over frames (v2vsim.evaluation.block_bootstrap: the block length, in
+    frames, is chosen per metric from the run's own autocorrelation). A metric is None where it has no
+    interval (fewer than 2 frames, or an IoU without any union); the whole entry None without `none`."""
+    if base is None:
+        return None
+
+    def r(v: float) -> float:
+        return round(v, 4)
+
+    out: dict = {}
+    for key, attr in VS_NONE.items():
+        d = paired_difference(*paired_counts(getattr(score, attr), getattr(base, attr)))
+        out[key] = None if d is None else {"diff": r(d.diff), "low": r(d.low), "high": r(d.high),
+                                           "excludes_zero": d.excludes_zero, "block_frames": d.block,
+                                           "frames": d.frames}
+    return {**out, "replicates": REPLICATES, "level": LEVEL,
+            "method": "circular moving-block bootstrap over frames, percentile interval"}
 
 
 def _fmt(v: float | int | None, pct: bool = False) -> str:
@@ -147,6 +172,7 @@ def report_md(doc: dict, summary: RunSummary) -> str:
               + ("over the whole run (`evaluation.ap_sort: global`, OpenCOOD's --global_sort_detections)."
                  if sort == "global" else
                  "within each frame, frames in order (`evaluation.ap_sort: per_frame`, OpenCOOD's default).")]
+    lines += _vs_none_md(doc)
     c = doc["comm"]
     lat = c["latency_ms"]
     lines += ["", "## Communication (BEV feature messages, receiver side)", "",
@@ -171,6 +197,35 @@ def report_md(doc: dict, summary: RunSummary) -> str:
                  else " No recording (`output.rerun: false`).")
     lines += ["", f"Plots: {', '.join(f'`{p}`' for p in pngs)}.{recording}", ""]
     return "\n".join(lines)
+
+
+def _vs_none_md(doc: dict) -> list[str]:
+    """Each method minus `none` in IoU points, with its bootstrap interval; [] when `none` did not run."""
+    rows = [(m, r["vs_none"]) for m, r in doc["methods"].items() if r.get("vs_none")]
+    if not rows:
+        return []
+    level = round(100 * rows[0][1]["level"])
+    lines = ["", f"### Difference to no fusion ({level} % moving-block bootstrap over frames)", "",
+             f"Method minus `{BASELINE}` in IoU points on the same frames, [{level} % interval]; * where the "
+             f"interval excludes 0. Frames are resampled in blocks of consecutive frames (circular, "
+             f"{rows[0][1]['replicates']} replicates), since neighbouring frames are alike: the block length "
+             "(last column) is the larger of n^(1/3) and the first lag at which the difference's "
+             "autocorrelation falls below 1.96/sqrt(n), at most n/4 (docs/run.md).", "",
+             "| method | IoU vehicle (visible) | IoU road | IoU lane | block (frames): vehicle / road / lane |",
+             "|---|---|---|---|---|"]
+    for m, v in rows:
+        cells = [v.get(k) for k in VS_NONE]
+        blocks = " / ".join("-" if c is None else str(c["block_frames"]) for c in cells)
+        lines.append(f"| {m} | " + " | ".join(_diff_cell(c) for c in cells) + f" | {blocks} |")
+    return lines
+
+
+def _diff_cell(d: dict | None) -> str:
+    """'+12.3 [+8.1, +16.0] *' in IoU points; '-' without an interval."""
+    if d is None:
+        return "-"
+    star = " *" if d["excludes_zero"] else ""
+    return f"{100 * d['diff']:+.1f} [{100 * d['low']:+.1f}, {100 * d['high']:+.1f}]{star}"
 
 
 def _reference_md() -> list[str]:

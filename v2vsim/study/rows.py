@@ -1,7 +1,8 @@
 """A sweep's data: one row per (grid point, seed, method) from each run's metrics.json, with the run's
 per-frame visible-vehicle IoU: from metrics.json's `iou_vehicle_counts` (intersection, union per fused
-frame), or, for runs written before that key existed, from the run's recording.rrd
-(`metrics/iou_vehicle/<method>` on the `frame` timeline); without either the statistics resample seeds only.
+frame, keyed by the frame indices in `iou_vehicle_frames`), or, for runs written before that key existed,
+from the run's recording.rrd (`metrics/iou_vehicle/<method>` on the `frame` timeline); without either the
+statistics resample seeds only.
 """
 
 from __future__ import annotations
@@ -18,6 +19,9 @@ from v2vsim.study.runs import RunResult, read_metrics
 CONTRACT_METRICS = ("iou_vehicle", "iou_vehicle_frame_mean", "iou_road", "iou_lane", "ap50", "ap70",
                     "fusion_ms", "bytes_per_frame")
 COUNTS_KEY = "iou_vehicle_counts"  # per-frame lists: read into Row.per_frame, not a CSV column
+FRAMES_KEY = "iou_vehicle_frames"  # the frame index of each of those counts (absent in older runs: 0, 1, ...)
+# a run's own intervals against `none` (over its frames); the sweep computes its own over seeds and frames
+RUN_ONLY_KEYS = ("vs_none",)
 IOU_ENTITY = "/metrics/iou_vehicle/"
 
 
@@ -67,8 +71,12 @@ def collect(results: Sequence[RunResult]) -> list[Row]:
         for method, metrics in methods.items():
             metrics = dict(metrics)
             counts = metrics.pop(COUNTS_KEY, None)
+            frames = metrics.pop(FRAMES_KEY, None)
+            for key in RUN_ONLY_KEYS:
+                metrics.pop(key, None)
             if counts is not None:
-                per_frame = {k: i / u for k, (i, u) in enumerate(counts) if u}
+                keys = frames if frames is not None else range(len(counts))
+                per_frame = {int(k): i / u for k, (i, u) in zip(keys, counts, strict=True) if u}
             else:
                 logged = logged if logged is not None else per_frame_vehicle_iou(rrd) if rrd.is_file() else {}
                 per_frame = logged.get(method)

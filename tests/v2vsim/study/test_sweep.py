@@ -345,6 +345,23 @@ def test_vehicle_iou_is_resampled_over_frames_when_every_run_has_them(tmp_path: 
     assert point_stats(rows, [pt], "iou_vehicle_frame_mean", 300, 0)[0].level == "seeds"
 
 
+def test_per_frame_values_are_keyed_by_the_runs_frame_indices_and_run_intervals_are_no_columns(
+        tmp_path: Path) -> None:
+    from v2vsim.study.grid import points
+    from v2vsim.study.rows import collect, metric_columns
+
+    (pt,) = points(parse_axes(["comm.drop.p=0"]))
+    spec = runs_mod.RunSpec(pt, 0, tmp_path, (), {})
+    late = {"iou_vehicle": 0.5, "iou_vehicle_counts": [[1, 2], [3, 4], [0, 0]], "iou_vehicle_frames": [0, 2, 3],
+            "vs_none": {"iou_vehicle": {"diff": 0.1, "low": 0.0, "high": 0.2, "excludes_zero": False}}}
+    old = {"iou_vehicle": 0.4, "iou_vehicle_counts": [[1, 4], [2, 4]]}  # written before the frame indices
+    (tmp_path / "metrics.json").write_text(json.dumps({"methods": {"late": late, "none": old}}))
+    rows = collect([runs_mod.RunResult(spec, ok=True)])
+    assert rows[0].per_frame == {0: 0.5, 2: 0.75}  # frame 1 had no input for late; frame 3 no union
+    assert rows[1].per_frame == {0: 0.25, 1: 0.5}
+    assert metric_columns(rows) == CONTRACT_METRICS  # no vs_none, frames or counts column in sweep.csv
+
+
 def test_per_frame_values_come_from_the_recording(tmp_path: Path) -> None:
     import rerun as rr
 
@@ -392,6 +409,10 @@ def test_real_two_point_sweep_writes_the_contract_csv_and_plots(tmp_path: Path) 
     run = out / "runs" / "comm.drop.p=0.5" / "seed0"
     m = json.loads((run / "metrics.json").read_text())
     assert m["status"] == "complete" and m["frames"] == 3 and m["cavs"] == 2
+    # the run's own intervals against none, and the frame indices the methods are paired on
+    assert "vs_none" in m["methods"]["cobevt"] and "vs_none" not in m["methods"]["none"]
+    assert m["methods"]["cobevt"]["iou_vehicle_frames"] == m["methods"]["none"]["iou_vehicle_frames"] == [0, 1, 2]
+    assert "vs_none" not in rows[0] and "iou_vehicle_frames" not in rows[0]
     assert not (run / "recording.rrd").exists()  # output.rerun=false by default in a sweep
     for name in ("sweep.json", "sweep.md", "sweep_comm.drop.p_iou_vehicle.png", "sweep_comm.drop.p_ap50.png",
                  "sweep_comm.drop.p_ap70.png"):
