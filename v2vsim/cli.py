@@ -17,7 +17,7 @@ _RUN_ID = re.compile(r"[A-Za-z0-9_.-]{1,64}")  # a zenoh key chunk (v2vsim/<run>
 
 
 def _scenario_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("scenario", help="scenario YAML")
+    p.add_argument("scenario", help="scenario YAML, or the name of a shipped scenario (`v2vsim scenarios`)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY.PATH=VALUE",
                    help="override a scenario key, e.g. --set comm.drop.p=0.3 (repeatable)")
 
@@ -146,6 +146,18 @@ def _cmd_train(args: argparse.Namespace) -> int:
     except (ValueError, DatasetError, PretrainedWeightsMissing) as e:
         print(f"v2vsim: error: {e}", file=sys.stderr)
         return 2
+
+
+def _cmd_scenarios(args: argparse.Namespace) -> int:
+    from v2vsim.config import describe, shipped_scenarios
+
+    shipped = shipped_scenarios()
+    if not shipped:
+        raise ConfigError("no shipped scenarios in this install (v2vsim/scenarios/ or the checkout's scenarios/)")
+    width = max(map(len, shipped))
+    for name, path in shipped.items():
+        print(f"{name:<{width}}  {describe(path)}".rstrip())
+    return 0
 
 
 def _cmd_models(args: argparse.Namespace) -> int:
@@ -336,6 +348,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="fusion methods the ego runs (none is always added)")
     p.add_argument("--out", required=True, help="output directory")
     p.set_defaults(func=_cmd_bandwidth)
+
+    p = sub.add_parser("scenarios", help="list the shipped scenarios, one line each: the name SCENARIO accepts, "
+                                         "what it is")
+    p.set_defaults(func=_cmd_scenarios)
 
     p = sub.add_parser("models", help="list every encoder and fusion method: parameters, stage shapes")
     p.add_argument("--preset", choices=["tiny", "paper"], default="tiny")

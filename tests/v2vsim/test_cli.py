@@ -138,3 +138,31 @@ def test_sweep_refuses_an_empty_methods(tmp_path: Path, capsys: pytest.CaptureFi
     _one_line_exit_2(["sweep", SCENARIO, "--seeds", "0", "--methods", " , ", "--out", str(tmp_path / "s")], capsys,
                      "--methods ' , '", "names no method")
     assert not (tmp_path / "s").exists()
+
+
+@pytest.mark.parametrize("argv", [
+    ["run", "{name}", "--out", "{out}"],
+    ["frame", "{name}", "--at", "0", "--out", "{out}"],
+    ["dataset", "{name}", "--seeds", "0", "--frames", "1", "--out", "{out}"],
+    ["sweep", "{name}", "--seeds", "0", "--out", "{out}"],
+    ["bandwidth", "{name}", "--seeds", "0", "--out", "{out}"],
+    ["agent", "{name}", "--cav", "cav0", "--run-id", "r", "--cavs", "cav0", "--egos", "cav0"],
+], ids=lambda argv: argv[0])
+def test_every_scenario_verb_refuses_an_unknown_name_listing_the_shipped_ones(
+        argv: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """SCENARIO is found in one place (v2vsim.config.find_scenario), so every verb says the same thing."""
+    out = tmp_path / "out"
+    shipped = ", ".join(sorted(p.stem for p in (REPO / "scenarios").glob("*.yaml")))
+    _one_line_exit_2([a.format(name="no_such_scenario", out=out) for a in argv], capsys,
+                     "no_such_scenario: scenario file not found", f"shipped: {shipped}")
+
+
+def test_scenarios_lists_every_shipped_scenario_with_its_description(tmp_path: Path) -> None:
+    r = subprocess.run([sys.executable, "-m", "v2vsim.cli", "scenarios"], cwd=tmp_path, capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.splitlines()
+    names = sorted(p.stem for p in (REPO / "scenarios").glob("*.yaml"))
+    assert [line.split()[0] for line in lines] == names
+    assert all(len(line.split()) > 3 for line in lines), r.stdout  # a description after each name
+    assert "Four-way signalised intersection" in lines[names.index("intersection")]

@@ -1,6 +1,6 @@
 """Benchmark the PettingZoo env (v2vsim.env): steps per second with the scenario's CAVs (4 by default).
 
-    v2vsim bench env [--scenario scenarios/intersection.yaml] [--steps 20] [--threads 2]
+    v2vsim bench env [--scenario intersection] [--steps 20] [--threads 2]
                                    [--json out.json]
 
 Three configurations: the default (every CAV a receiver, leave-one-out reward, full feature maps), the
@@ -61,7 +61,7 @@ def bench(scenario: str, steps: int, kwargs: dict) -> dict:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="v2vsim bench env", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--scenario", default="scenarios/intersection.yaml")
+    p.add_argument("--scenario", default="intersection")
     p.add_argument("--steps", type=int, default=20)
     p.add_argument("--threads", type=int, default=2, help="torch intra-op threads (the env is one process)")
     p.add_argument("--json", default=None)

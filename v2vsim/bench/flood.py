@@ -127,7 +127,7 @@ def scores(m: dict) -> dict:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="v2vsim bench flood", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("scenario", nargs="?", default=str(REPO / "scenarios" / "intersection.yaml"))
+    p.add_argument("scenario", nargs="?", default="intersection")
     p.add_argument("--frames", type=int, default=60)
     p.add_argument("--messages", type=int, default=10_000)
     p.add_argument("--set", dest="overrides", action="append", default=[])

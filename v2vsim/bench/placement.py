@@ -1,6 +1,6 @@
 """Do the CAVs meet? Per scenario and seed, how many other CAVs are within comm range of the ego.
 
-    v2vsim bench placement [SCENARIO.yaml ...] [--seeds 0-19] [--set key=value ...]
+    v2vsim bench placement [SCENARIO ...] [--seeds 0-19] [--set key=value ...]
 
 Runs the traffic backend alone (no sensors, no agents) for the scenario's duration and counts,
 in every frame from frame 0, the other CAVs whose centre is within `comm.range_m` of the first
@@ -24,8 +24,7 @@ import numpy as np
 from v2vsim.config import Scenario, load_scenario
 from v2vsim.traffic import make_backend
 
-SCENARIOS = Path(__file__).resolve().parents[2] / "scenarios"
-DEFAULT = ("intersection.yaml", "t_junction.yaml", "highway_intersection.yaml")
+DEFAULT = ("intersection", "t_junction", "highway_intersection")  # shipped scenarios, by name
 
 
 def ego_of(sc: Scenario) -> str:
@@ -57,7 +56,7 @@ def seeds_arg(text: str) -> list[int]:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="v2vsim bench placement", description=__doc__.splitlines()[0])
-    ap.add_argument("scenarios", nargs="*", default=[str(SCENARIOS / n) for n in DEFAULT])
+    ap.add_argument("scenarios", nargs="*", default=list(DEFAULT))
     ap.add_argument("--seeds", type=seeds_arg, default=seeds_arg("0-19"))
     ap.add_argument("--set", action="append", default=[], dest="overrides")
     args = ap.parse_args(argv)

@@ -84,7 +84,7 @@ def _stage_order(stage: str) -> tuple[int, str]:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="v2vsim bench run", description=__doc__.split("\n\n")[0])
-    ap.add_argument("scenario", nargs="?", default="scenarios/intersection.yaml")
+    ap.add_argument("scenario", nargs="?", default="intersection")
     ap.add_argument("--frames", type=int, default=100)
     ap.add_argument("--pipeline", default="0,2", help="comma-separated transport.pipeline values to compare")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")

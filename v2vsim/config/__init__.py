@@ -3,7 +3,8 @@
 A scenario is loaded once into frozen dataclasses (`Scenario`). Each field carries what is
 allowed; unknown keys, wrong types and out-of-range values raise `ConfigError` naming the
 file, the key path and what is allowed. Input paths are relative to the YAML file;
-`output.dir` is relative to the working directory.
+`output.dir` is relative to the working directory (so a shipped scenario found by name, whose YAML may sit
+in a read-only site-packages, writes its runs under the working directory, e.g. runs/intersection).
 
 Modules (each imports only those above it):
 - `errors`: `ConfigError`;
@@ -11,6 +12,8 @@ Modules (each imports only those above it):
   (`SEED_MAX`, `METHODS`, `ENCODERS_BY_MODALITY`);
 - `validate`: `_Loader`, which checks a raw mapping against the schema (types, ranges, unknown keys, paths);
 - `checks`: the checks across fields of a loaded scenario, and `check_output_dir`;
+- `shipped`: the shipped scenarios (names, descriptions, where they are) and `find_scenario`, which turns a
+  SCENARIO argument (a path or a shipped name) into a YAML file;
 - `load`: the strict YAML loader, `parse_override`, `apply_overrides`, `load_scenario`, `scenario_from_dict`.
 
 The public API is re-exported here: import it from `v2vsim.config`.
@@ -43,6 +46,7 @@ from v2vsim.config.schema import (
     TrafficConfig,
     TransportConfig,
 )
+from v2vsim.config.shipped import describe, find_scenario, scenarios_dir, shipped_scenarios
 
 __all__ = [
     "ENCODERS_BY_MODALITY",
@@ -70,7 +74,11 @@ __all__ = [
     "TransportConfig",
     "apply_overrides",
     "check_output_dir",
+    "describe",
+    "find_scenario",
     "load_scenario",
     "parse_override",
     "scenario_from_dict",
+    "scenarios_dir",
+    "shipped_scenarios",
 ]

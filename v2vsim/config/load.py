@@ -12,6 +12,7 @@ import yaml
 from v2vsim.config.checks import _check_cross_fields
 from v2vsim.config.errors import ConfigError
 from v2vsim.config.schema import Scenario
+from v2vsim.config.shipped import find_scenario
 from v2vsim.config.validate import _Loader
 
 
@@ -82,10 +83,9 @@ def apply_overrides(raw: dict, overrides: typing.Sequence[str]) -> dict:
 
 
 def load_scenario(path: str | Path, overrides: typing.Sequence[str] = ()) -> Scenario:
-    """Read, override and validate a scenario YAML. Raises ConfigError with a clear message."""
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"{path}: scenario file not found")
+    """Read, override and validate a scenario YAML, given by path or by a shipped scenario's name (`source` is
+    then the file in the package: child processes get that path). Raises ConfigError with a clear message."""
+    path = find_scenario(path)
     try:
         text = path.read_bytes().decode("utf-8")
     except UnicodeDecodeError as e:

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TextIO
 
-from v2vsim.config import ConfigError, check_output_dir, load_scenario
+from v2vsim.config import ConfigError, check_output_dir, find_scenario, load_scenario
 from v2vsim.study.grid import Axis, Point, base_overrides, parse_axes, parse_seeds, points, validate
 from v2vsim.study.rows import collect, methods_of
 from v2vsim.study.runs import LOG, Job, Progress, RunResult, RunSpec, execute, plan, start_process
@@ -66,7 +66,7 @@ def prepare(args: SweepArgs) -> Design:
         raise ConfigError("--engine dask needs --scheduler ADDRESS (and --scheduler goes with --engine dask)")
     if args.bootstrap < 100:
         raise ConfigError(f"--bootstrap {args.bootstrap}: expected >= 100 resamples")
-    scenario = Path(args.scenario).resolve()
+    scenario = find_scenario(args.scenario).resolve()  # a shipped name too; runs get the file's absolute path
     sc = load_scenario(args.scenario, list(args.overrides))
     axes = parse_axes(args.grid)
     seeds = parse_seeds(args.seeds)
