@@ -95,15 +95,24 @@ def _cmd_dataset(args: argparse.Namespace) -> int:
     from v2vsim.data.layout import DatasetError
     from v2vsim.data.record import parse_seeds, record_dataset
 
+    record = record_dataset
+    if args.format == "opv2v":
+        from v2vsim.data.opv2v import NATIVE_DIR, record_opv2v_dataset
+
+        record = record_opv2v_dataset
     try:
         seeds = parse_seeds(args.seeds)
-        out = record_dataset(args.scenario, seeds, args.frames, Path(args.out), split=args.split,
-                             overrides=tuple(args.overrides), cameras=args.cameras,
-                             traffic_only=args.traffic_only, jobs=args.jobs)
+        out = record(args.scenario, seeds, args.frames, Path(args.out), split=args.split,
+                     overrides=tuple(args.overrides), cameras=args.cameras,
+                     traffic_only=args.traffic_only, jobs=args.jobs)
     except (ValueError, DatasetError) as e:
         print(f"v2vsim: error: {e}", file=sys.stderr)
         return 2
-    print(f"traffic: {out}/*/traffic" if args.traffic_only else f"dataset: {out}/manifest.json")
+    if args.format == "opv2v":
+        print(f"traffic: {out}/{NATIVE_DIR}/*/traffic" if args.traffic_only else
+              f"dataset: {out} (OPV2V layout; recorded from {out}/{NATIVE_DIR}/manifest.json)")
+    else:
+        print(f"traffic: {out}/*/traffic" if args.traffic_only else f"dataset: {out}/manifest.json")
     return 0
 
 
@@ -273,11 +282,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="only simulate and save each run's traffic (<run>/traffic/); a later call senses from it, "
                         "without the simulator")
     p.add_argument("--jobs", type=int, default=1, help="seeds sensed at once, one process each (default 1)")
+    p.add_argument("--format", choices=["v2vsim", "opv2v"], default="v2vsim",
+                   help="v2vsim (default) or opv2v: OPV2V's layout (train/validate/test scenario folders, .pcd, "
+                        ".yaml, camera and BEV PNGs) beside the v2vsim recording it is made from (docs/dataset.md)")
     p.set_defaults(func=_cmd_dataset)
 
     p = sub.add_parser("train", help="train a model zoo (LiDAR, or camera with --encoder), stage by stage "
                                      "(docs/training.md)")
-    p.add_argument("--data", required=True, help="dataset directory written by `v2vsim dataset`")
+    p.add_argument("--data", required=True, help="dataset directory written by `v2vsim dataset`, or an OPV2V folder "
+                                                 "(train/validate/test scenario folders; docs/dataset.md)")
     p.add_argument("--stage", default="all",
                    help="all | single | cache | compress (the wire's channel compressors, --ratios) | none | early | "
                         "attfuse | fcooper | v2vnet | cobevt | disconet | extrapolate (latency compensation for the "

@@ -2,7 +2,8 @@
 
 A sample holds what `CooperativePerception.forward` takes (per-agent LiDAR clouds, relative poses,
 valid flags; ego first, then the other CAVs within `range_m` of the ego, in id order as in a run) and the
-targets on the ego's BEV grid. Frames are read lazily from their .npz files.
+targets on the ego's BEV grid. Frames are read lazily from their .npz files, or from an OPV2V-layout folder
+(v2vsim.data.opv2v; `open_store` tells them apart).
 
 `delays`: frames of V2V delay drawn per sample for the neighbours (0 = same frame). A neighbour
 delayed by d contributes its frame k-d data warped with its frame k-d pose, while targets are of
@@ -69,6 +70,17 @@ class FrameStore:
         return out
 
 
+def open_store(root: Path | str) -> FrameStore:
+    """The frames of a dataset folder: a native v2vsim dataset (manifest.json), or an OPV2V-layout folder
+    (v2vsim.data.opv2v.OPV2VStore, read into the same frame keys)."""
+    from v2vsim.data.opv2v import OPV2VStore, is_opv2v
+
+    root = Path(root)
+    if is_opv2v(root):
+        return OPV2VStore(root)  # type: ignore[return-value]
+    return FrameStore(root)
+
+
 def _pose(poses: np.ndarray, cavs: list[str], c: str) -> Pose:
     return Pose(*(float(v) for v in poses[cavs.index(c)]))
 
@@ -109,7 +121,9 @@ class CooperativeDataset(Dataset):
     def __init__(self, root: Path | str, split: str, max_agents: int = 5, range_m: float | None = None,
                  delays: Sequence[int] = (0,), egos: str = "all", stride: int = 1, seed: int = 0,
                  with_points: bool = True, with_images: bool = False, with_previous: bool = False) -> None:
-        self.store = FrameStore(Path(root))
+        self.store = open_store(root)
+        if hasattr(self.store, "check_targets"):  # OPV2V: refuse when BEV targets are missing (none made up)
+            self.store.check_targets()
         self.split = split
         self.items = self.store.keys(split, egos=egos, stride=stride)
         if not self.items:

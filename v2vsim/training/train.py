@@ -39,8 +39,8 @@ from models import zoo
 from models.compression import ChannelCompressor
 from models.heads import AnchorTargetAssigner
 from models.registry import MODALITY, is_intermediate
-from v2vsim.data.layout import DatasetError, read_manifest, runs_of
-from v2vsim.data.torch_dataset import CooperativeDataset, collate, tensor_inputs
+from v2vsim.data.layout import DatasetError, runs_of
+from v2vsim.data.torch_dataset import CooperativeDataset, collate, open_store, tensor_inputs
 from v2vsim.training.augment import yaw_rotate_batch
 from v2vsim.training.cache import (
     FeatureCache,
@@ -149,7 +149,7 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
         check_dataset_has_cameras(args)
     if args.stage == "cache":
         encoder, source = cache_encoder(args, log)
-        store = CooperativeDataset(args.data, "train").store
+        store = open_store(args.data)  # the cache needs sensor data only (an OPV2V folder may lack BEV maps)
         build_feature_cache(encoder.to(dev), store, ("train", "val"), args.work / "cache",
                             stride=CACHE_STRIDE, log=log, camera=camera)
         write_cache_encoder(args.work / "cache", source, encoder.state_dict())
@@ -311,8 +311,13 @@ def batches(ds: CooperativeDataset, perm: np.ndarray, batch: int, first: int, st
 
 def check_dataset_has_cameras(args: TrainArgs) -> None:
     """A camera encoder trains on a dataset recorded with cameras: DatasetError naming the first run without."""
-    doc = read_manifest(args.data)
-    for r in doc["runs"]:
+    store = open_store(args.data)
+    for r in store.manifest["runs"]:
+        if store.runs[r["name"]].get("format") == "opv2v":
+            if not store.runs[r["name"]]["cameras"]:
+                raise DatasetError(f"{store.runs[r['name']]['source']}: OPV2V scenario without camera images "
+                                   f"(<timestamp>_camera0..3.png); --encoder {args.encoder} trains on camera images")
+            continue
         info = args.data / r["name"] / "run.json"
         if info.is_file() and not json.loads(info.read_text()).get("cameras", False):
             raise DatasetError(f"{info}: run {r['name']} was recorded without cameras; --encoder {args.encoder} "
