@@ -4,8 +4,8 @@ One module for training and tests; the running simulator splits the same steps a
 (each CAV calls ``encode`` on its own sensors, the ego calls ``fuse`` + ``heads``).
 
 Methods (models.registry.METHODS):
-- intermediate (attfuse, fcooper, v2vnet, disconet, cobevt): every valid agent is encoded in its own
-  frame, warped with its relative SE(2) pose (models.warp), fused, decoded once;
+- intermediate (attfuse, fcooper, v2vnet, disconet, cobevt, and every fusion plugin): every valid agent is
+  encoded in its own frame, warped with its relative SE(2) pose (models.warp), fused, decoded once;
 - "none": the ego alone; "early": every valid agent's points merged into the ego frame, encoded
   once (LiDAR only); "late": every valid agent runs encoder + heads on its own (training a late
   model = training the single-agent model).

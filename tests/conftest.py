@@ -30,3 +30,46 @@ def tiny_dataset(tmp_path_factory: pytest.TempPathFactory):
     record_dataset(scenario, [700], 4, root, split="train", log=io.StringIO())
     record_dataset(scenario, [701], 2, root, split="val", log=io.StringIO())
     return root
+
+
+class FakeSite:
+    """A folder on sys.path where `install` puts a module and a distribution's metadata (.dist-info with entry
+    points), as pip would: importlib.metadata finds the entry points there like any installed plugin's."""
+
+    def __init__(self, root) -> None:
+        self.root = root
+        self.modules: list[str] = []
+
+    def install(self, dist: str, module: str, source: str, entry_points: dict[str, str],
+                group: str = "v2vsim.fusion") -> None:
+        import importlib
+
+        from models import registry
+
+        (self.root / f"{module}.py").write_text(source)
+        info = self.root / f"{dist}-0.1.dist-info"
+        info.mkdir()
+        (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {dist}\nVersion: 0.1\n")
+        lines = "".join(f"{k} = {v}\n" for k, v in entry_points.items())
+        (info / "entry_points.txt").write_text(f"[{group}]\n{lines}")
+        self.modules.append(module)
+        importlib.invalidate_caches()
+        registry.rescan_plugins()  # a process that installed a plugin since it started reads the entry points again
+
+
+@pytest.fixture
+def fake_site(tmp_path_factory: pytest.TempPathFactory) -> Iterator[FakeSite]:
+    """Plugins "installed" for one test (FakeSite.install); gone again after it, and the registry forgets them."""
+    import sys
+
+    from models import registry
+
+    site = FakeSite(tmp_path_factory.mktemp("site"))
+    sys.path.insert(0, str(site.root))
+    try:
+        yield site
+    finally:
+        sys.path.remove(str(site.root))
+        for m in site.modules:
+            sys.modules.pop(m, None)
+        registry.rescan_plugins()

@@ -9,6 +9,7 @@ import signal
 import sys
 from pathlib import Path
 
+from models.registry import PluginError  # (imports no torch)
 from v2vsim.config import ConfigError, check_output_dir, load_scenario
 
 IMAGE_BACKBONE_KINDS = ("resnet", "efficientnet_lite0")
@@ -170,10 +171,17 @@ def _cmd_scenarios(args: argparse.Namespace) -> int:
 
 
 def _cmd_models(args: argparse.Namespace) -> int:
+    """The table (or --json rows) of every encoder and fusion method, plugins with where they come from; a fusion
+    plugin that cannot be used is listed as broken with the reason, and then the exit code is 2."""
     from models.registry import describe_models, format_models_table
 
     rows = describe_models(args.preset)
     print(json.dumps(rows, indent=2) if args.json else format_models_table(rows))
+    broken = [r for r in rows if r.get("error")]
+    if broken:
+        print(f"v2vsim: error: {len(broken)} fusion plugin(s) cannot be used: "
+              f"{', '.join(r['name'] for r in broken)} (the reason is in the table)", file=sys.stderr)
+        return 2
     return 0
 
 
@@ -294,7 +302,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--stage", default="all",
                    help="all | single | cache | compress (the wire's channel compressors, --ratios) | none | early | "
                         "attfuse | fcooper | v2vnet | cobevt | disconet | extrapolate (latency compensation for the "
-                        "--out zoo's cobevt; not part of all)")
+                        "--out zoo's cobevt; not part of all) | the name of an installed fusion plugin (`v2vsim "
+                        "models` lists them; not part of all)")
     p.add_argument("--out", default="models/weights", help="zoo directory: manifest.json + <encoder>_<preset>/")
     p.add_argument("--work", default="runs/train", help="checkpoints and the feature cache (resumable)")
     p.add_argument("--resume", action="store_true", help="continue the stage from its last checkpoint")
@@ -366,7 +375,8 @@ def build_parser() -> argparse.ArgumentParser:
                                          "what it is")
     p.set_defaults(func=_cmd_scenarios)
 
-    p = sub.add_parser("models", help="list every encoder and fusion method: parameters, stage shapes")
+    p = sub.add_parser("models", help="list every encoder and fusion method (installed plugins too, with where each "
+                                      "comes from): parameters, stage shapes")
     p.add_argument("--preset", choices=["tiny", "paper"], default="tiny")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=_cmd_models)
@@ -395,7 +405,7 @@ def main(argv: list[str] | None = None) -> int:
         args.listen = ["tcp/127.0.0.1:7447"]
     try:
         return int(args.func(args) or 0)
-    except ConfigError as e:
+    except (ConfigError, PluginError) as e:  # PluginError: a fusion plugin that cannot be used (models.registry)
         print(f"v2vsim: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -42,7 +42,7 @@ from v2vsim.comm.identity import Identity, write_identity_file
 from v2vsim.comm.identity import issue as issue_identities
 from v2vsim.comm.transport import TransportError, free_ports, loopback_endpoint, open_session
 from v2vsim.config import ConfigError, Scenario, check_output_dir
-from v2vsim.perception.build import check_scenario, runnable_methods
+from v2vsim.perception.build import check_scenario, method_checkpoints, runnable_methods, zoo_for
 from v2vsim.sensors.sensing import ego_ids
 from v2vsim.traffic.base import cav_id
 
@@ -134,6 +134,12 @@ def run(sc: Scenario, out: Path, frames: int | None = None, remote_cavs: tuple[s
     if dropped:
         print(f"v2vsim: note: {', '.join(dropped)} left out: early fusion ships LiDAR points and this run's "
               f"modality is {sc.perception.modality}", file=sys.stderr)
+    z = zoo_for(sc)
+    untrained = [m for m, f in method_checkpoints(sc, runnable).items() if f is None] if z is not None else []
+    if untrained:  # (the whole run untrained, weights none or no zoo: the report's first lines say so)
+        print(f"v2vsim: note: {', '.join(untrained)}: no checkpoint in the zoo at {z[0]} (perception.weights: "
+              f"{sc.perception.weights}): run{'s' if len(untrained) == 1 else ''} untrained, with seeded random "
+              "weights; report.md and metrics.json (checkpoints: null) say so", file=sys.stderr)
     # comm.auth.identity per_process: the runner is the run's authority (v2vsim/comm/identity.py)
     identities = issue_identities(run_id, ["driver.main", *(f"cav.{c}" for c in cavs), *(f"ego.{e}" for e in egos)]
                                   ) if sc.comm.auth.identity == "per_process" else {}

@@ -14,8 +14,10 @@ A fusion method is an ``nn.Module`` constructed as ``Method(channels, **preset_k
 - Symmetric methods must be invariant to the order of the neighbours.
 
 The FuseBEVT module (models.fusion.cobevt) follows the same contract structurally; methods in this
-package subclass :class:`FusionModule`. Adding a method = one file here + one line in
-models.registry.FUSION (+ optional sizes in models.presets).
+package subclass :class:`FusionModule`. Adding a method = one file here + one registration in models.registry
+(+ optional sizes in models.presets); from another package: an entry point in group "v2vsim.fusion"
+(examples/fusion_plugin). A method registered from outside is checked against this contract when it loads
+(models.fusion.contract.check_fusion_module).
 """
 
 from __future__ import annotations

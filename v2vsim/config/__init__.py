@@ -9,9 +9,10 @@ in a read-only site-packages, writes its runs under the working directory, e.g. 
 Modules (each imports only those above it):
 - `errors`: `ConfigError`;
 - `schema`: the frozen dataclasses (`Scenario` and every section), the field helpers and the constants
-  (`SEED_MAX`, `METHODS`, `ENCODERS_BY_MODALITY`);
+  (`SEED_MAX`, `METHODS`: the live list of models.registry, plugins included; `ENCODERS_BY_MODALITY`);
 - `validate`: `_Loader`, which checks a raw mapping against the schema (types, ranges, unknown keys, paths);
-- `checks`: the checks across fields of a loaded scenario, and `check_output_dir`;
+- `checks`: the checks across fields of a loaded scenario, `check_output_dir`, and `check_plugins` (the fusion
+  plugins a scenario requests, imported and checked: models.registry);
 - `shipped`: the shipped scenarios (names, descriptions, where they are) and `find_scenario`, which turns a
   SCENARIO argument (a path or a shipped name) into a YAML file;
 - `load`: the strict YAML loader, `parse_override`, `apply_overrides`, `load_scenario`, `scenario_from_dict`.
@@ -19,7 +20,7 @@ Modules (each imports only those above it):
 The public API is re-exported here: import it from `v2vsim.config`.
 """
 
-from v2vsim.config.checks import check_output_dir
+from v2vsim.config.checks import check_output_dir, check_plugins
 from v2vsim.config.errors import ConfigError
 from v2vsim.config.load import apply_overrides, load_scenario, parse_override, scenario_from_dict
 from v2vsim.config.schema import (
@@ -74,6 +75,7 @@ __all__ = [
     "TransportConfig",
     "apply_overrides",
     "check_output_dir",
+    "check_plugins",
     "describe",
     "find_scenario",
     "load_scenario",

@@ -91,6 +91,20 @@ def _check_endpoint(ep: str, key: str, loader: _Loader) -> None:
             loader.fail(key, f"got {ep!r}; allowed: {m.group('proto')}/HOST:PORT with a port 1..65535")
 
 
+def check_plugins(sc: Scenario) -> None:
+    """The fusion plugins among perception.methods (models.registry), each imported and checked against the fusion
+    contract (and no installed plugin claiming a requested built-in's name); ConfigError with the plugin's error
+    (one line: the entry point, the object it points at, what it broke) when one cannot be used. Not part of
+    loading a scenario, which every process does (a plugin imports torch): the runner (check_scenario), `v2vsim
+    sweep` and the env call it before anything starts."""
+    from models.registry import PluginError, check_methods
+
+    try:
+        check_methods(sc.perception.methods)
+    except PluginError as e:
+        raise ConfigError(f"{sc.source}: perception.methods: {e}") from None
+
+
 def check_output_dir(path: Path, what: str) -> None:
     """Create `path` and prove a file can be written there, so that a bad --out or output.dir fails
     in one line before any process starts rather than in the ego at the end of the run."""

@@ -8,8 +8,9 @@ import typing
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
+from models.registry import BUILTIN_METHODS, METHODS  # (imports no torch)
+
 SEED_MAX = 2**31 - 1  # SUMO (libsumo --seed) takes a signed 32-bit seed
-METHODS = ("none", "late", "early", "attfuse", "fcooper", "v2vnet", "disconet", "cobevt")
 ENCODERS_BY_MODALITY = {"lidar": ("pointpillars",), "camera": ("sinbevt", "lara")}
 
 
@@ -35,6 +36,14 @@ def _nonneg(x: float) -> bool:
 
 def _prob(x: float) -> bool:
     return 0.0 <= x <= 1.0
+
+
+class _Methods:
+    """What perception.methods allows, spelled when an error needs it: the registry's methods (models.registry:
+    the built-ins and every installed fusion plugin, whose entry points are read only then)."""
+
+    def __str__(self) -> str:
+        return f"a non-empty list of {', '.join(METHODS)}"
 
 
 # ---- the schema ------------------------------------------------------------------------------
@@ -216,8 +225,8 @@ class PerceptionConfig:
     modality: Literal["lidar", "camera"] = "lidar"
     encoder: Literal["pointpillars", "sinbevt", "lara"] = "pointpillars"
     preset: Literal["tiny", "paper"] = "tiny"
-    methods: tuple[str, ...] = _f(METHODS, f"a non-empty list of {', '.join(METHODS)}",
-                                  lambda v: len(v) > 0 and all(m in METHODS for m in v))
+    # default: the built-in methods; a fusion plugin (models.registry) runs when named here or in --methods
+    methods: tuple[str, ...] = _f(BUILTIN_METHODS, _Methods(), lambda v: len(v) > 0 and all(m in METHODS for m in v))
     weights: str = _f("auto", "'auto', 'none' or a checkpoint path")
 
 

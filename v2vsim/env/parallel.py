@@ -32,7 +32,7 @@ import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
-from models.registry import METHODS, is_intermediate
+from models.registry import METHODS, PluginError, check_methods, is_intermediate
 from v2vsim.comm.codec import Message, encode
 from v2vsim.comm.inbox import Inbox, distance
 from v2vsim.comm.share import cells_sent, dense_payload, feature_message
@@ -90,6 +90,10 @@ class EnvOptions:
             allowed = [m for m in METHODS if m == "none" or is_intermediate(m)]
             raise ConfigError(f"env methods={list(self.methods)}; allowed: a non-empty list of {', '.join(allowed)} "
                               "(early and late fusion share points / outputs, not feature cells)")
+        try:  # a fusion plugin among them: imported and checked against the fusion contract
+            check_methods(self.methods)
+        except PluginError as e:
+            raise ConfigError(f"env methods: {e}") from None
         if not (self.byte_cost >= 0 and math.isfinite(self.byte_cost)):
             raise ConfigError(f"env byte_cost={self.byte_cost}; allowed: a finite number >= 0")
         if self.reward not in ("leave_one_out", "bytes"):

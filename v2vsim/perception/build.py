@@ -5,6 +5,13 @@ Weights: `perception.weights: auto` loads the zoo's checkpoints (models.zoo: mod
 <encoder>_<preset>/, verified against manifest.json); where none ship, every process builds the same
 randomly initialised models from the scenario seed (so CAV encoders and the ego agree), and the
 report says the weights are untrained.
+
+A fusion plugin (models.registry) loads its checkpoint like a built-in, from the scenario's zoo (`perception.weights:
+PATH`, a folder `v2vsim train --stage NAME --out PATH` wrote it into). Where that zoo has none and the plugin ships
+a zoo of its own (its entry point object's `weights` attribute: a folder with a manifest.json), the checkpoint comes
+from there if it was trained on this zoo's encoder and wire (plugin_zoo: the manifests' sha256 of the encoder and
+of the wire's compressor must match); else the method runs untrained, as every method without a checkpoint does,
+and the report and metrics.json say so.
 """
 
 from __future__ import annotations
@@ -20,8 +27,8 @@ from models import zoo
 from models.compression import ChannelCompressor
 from models.extrapolation import FeatureExtrapolation
 from models.presets import get_preset
-from models.registry import MODALITY, build_cooperative, build_encoder, is_intermediate
-from v2vsim.config import ConfigError, Scenario
+from models.registry import MODALITY, build_cooperative, build_encoder, is_intermediate, is_plugin, plugin_weights
+from v2vsim.config import ConfigError, Scenario, check_plugins
 
 
 def zoo_for(sc: Scenario) -> tuple[Path, dict] | None:
@@ -78,27 +85,79 @@ def method_file(sc: Scenario, root: Path, entry: dict, method: str) -> Path | No
     return path
 
 
+def _file_sha(entry: dict, name: str | None) -> str | None:
+    return None if name is None else (entry["files"].get(name) or {}).get("sha256")
+
+
+def plugin_zoo(sc: Scenario, method: str, z: tuple[Path, dict]) -> tuple[Path, dict] | None:
+    """(root, entry) of the zoo a fusion plugin ships (models.registry.plugin_weights) when it holds `method`'s
+    checkpoint for this encoder/preset and wire, trained on the encoder and wire compressor of the scenario's zoo
+    `z` (the sha256 its manifest records for them equal z's); None when the plugin ships no zoo or none for this
+    encoder/preset. ConfigError when it does but was trained on another encoder or wire: fused from other
+    features its results would say nothing about the method."""
+    folder = plugin_weights(method)
+    if folder is None:
+        return None
+    enc, preset = sc.perception.encoder, sc.perception.preset
+    try:
+        entry = zoo.zoo_entry(enc, preset, folder)
+    except zoo.ZooError as e:
+        raise ConfigError(f"fusion plugin {method!r}: its weights {folder}: {e}") from None
+    ratio = wire_ratio(sc)
+    if entry is None or zoo.wire_method_file(entry, method, ratio, folder, enc, preset) is None:
+        return None
+    root, mine = z
+    why = []
+    if _file_sha(entry, entry.get("encoder")) != _file_sha(mine, mine.get("encoder")):
+        why.append("its encoder")
+    if zoo.zoo_cells(entry, 0) != zoo.zoo_cells(mine, 0) or zoo.zoo_image_backbone(entry) != zoo.zoo_image_backbone(
+            mine):
+        why.append("its grid or image backbone")
+    if ratio > 1 and _file_sha(entry, (entry.get("compressors") or {}).get(str(ratio))) != _file_sha(
+            mine, (mine.get("compressors") or {}).get(str(ratio))):
+        why.append(f"its ratio-{ratio} wire compressor")
+    if why:
+        raise ConfigError(f"{sc.source}: perception.methods: fusion plugin {method!r}: the checkpoint it ships "
+                          f"({folder / zoo.zoo_name(enc, preset)}) was trained on another model than the "
+                          f"{zoo.zoo_name(enc, preset)} zoo at {root} ({' and '.join(why)} differ: manifest sha256); "
+                          f"train {method} on this zoo (v2vsim train --data DATA --stage {method} --out COPY_OF_ZOO "
+                          "--work WORK, docs/training.md) and run with perception.weights: COPY_OF_ZOO")
+    return folder, entry
+
+
+def method_zoo(sc: Scenario, method: str) -> tuple[Path, dict] | None:
+    """(root, entry) of the zoo `method`'s checkpoint comes from: the scenario's (zoo_for), or for a fusion plugin
+    that zoo has no checkpoint of, the plugin's own (plugin_zoo) where it ships a fitting one; None: random."""
+    z = zoo_for(sc)
+    if z is None or method == "encoder" or not is_plugin(method) or method_file(sc, z[0], z[1], method) is not None:
+        return z
+    return plugin_zoo(sc, method, z) or z
+
+
 def method_checkpoints(sc: Scenario, methods: tuple[str, ...]) -> dict[str, str | None]:
-    """Checkpoint file each method loads (relative to the zoo root), None where weights are random."""
+    """Checkpoint file each method loads (relative to the zoo root; a plugin's own zoo's file: its absolute path),
+    None where weights are random."""
     z = zoo_for(sc)
     out: dict[str, str | None] = {}
     for m in methods:
-        f = None if z is None else method_file(sc, z[0], z[1], m)
-        out[m] = None if f is None else str(f.relative_to(z[0]))
+        mz = method_zoo(sc, m)
+        f = None if mz is None else method_file(sc, mz[0], mz[1], m)
+        out[m] = None if f is None else str(f.relative_to(mz[0]) if z is not None and mz[0] == z[0] else f)
     return out
 
 
 def _states(sc: Scenario, methods: tuple[str, ...]) -> dict[str, dict | None]:
     """Verified state_dict of each method's checkpoint ("encoder": the CAVs' encoder; None: random
     weights), every file read and hashed once; ConfigError naming the file when one is broken."""
-    z = zoo_for(sc)
-    if z is None:
+    if zoo_for(sc) is None:
         return dict.fromkeys(methods)
-    files = {m: method_file(sc, z[0], z[1], m) for m in methods}
+    zoos = {m: method_zoo(sc, m) for m in methods}
+    files = {m: method_file(sc, *zoos[m], m) for m in methods}  # type: ignore[misc]  # a zoo: every method has one
     loaded: dict[Path, dict] = {}
     try:
-        for f in {f for f in files.values() if f is not None}:
-            loaded[f] = zoo.load_checkpoint(f, z[1])
+        for m, f in files.items():
+            if f is not None and f not in loaded:
+                loaded[f] = zoo.load_checkpoint(f, zoos[m][1])  # type: ignore[index]
     except zoo.ZooError as e:
         raise ConfigError(str(e)) from None
     return {m: None if f is None else loaded[f] for m, f in files.items()}
@@ -120,7 +179,7 @@ def _load(module: nn.Module, state: dict | None, prefix: str, sc: Scenario, meth
     try:
         module.load_state_dict(sub)
     except RuntimeError as e:
-        root, entry = zoo_for(sc)  # type: ignore[misc]  # a state was loaded, so there is a zoo
+        root, entry = method_zoo(sc, method)  # type: ignore[misc]  # a state was loaded, so there is a zoo
         path = method_file(sc, root, entry, method)
         reason = " ".join(str(e).split())
         raise ConfigError(f"{path}: the {method} checkpoint's {prefix.rstrip('.')} weights do not fit this "
@@ -171,6 +230,7 @@ def runnable_methods(sc: Scenario) -> tuple[str, ...]:
 
 def check_scenario(sc: Scenario) -> None:
     """Model-dependent checks the schema cannot make; ConfigError before any process starts."""
+    check_plugins(sc)
     channels = get_preset(sc.perception.preset).channels
     ratio = wire_ratio(sc)
     if channels % ratio:

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from v2vsim.config import ConfigError, load_scenario, parse_override
+from v2vsim.config import ConfigError, check_plugins, load_scenario, parse_override
 
 RESERVED = {"seed": "use --seeds", "output.dir": "the sweep places each run under --out"}
 _SLUG_BAD = re.compile(r"[^A-Za-z0-9._=+-]+")
@@ -155,11 +155,11 @@ def base_overrides(axes: Sequence[Axis], user: Sequence[str], methods: str | Non
 def validate(scenario: Path, axes: Sequence[Axis], pts: Sequence[Point], base: Sequence[str],
              seeds: Sequence[int]) -> None:
     """Load the scenario with every point's full override set (and the extreme seeds): a bad key or value is
-    a ConfigError naming it, before any run starts."""
+    a ConfigError naming it, before any run starts; so is a fusion plugin it requests that cannot be used."""
     for p in pts:
         for s in sorted({seeds[0], seeds[-1]}):
             try:
-                load_scenario(scenario, [f"seed={s}", *p.overrides(axes), *base])
+                check_plugins(load_scenario(scenario, [f"seed={s}", *p.overrides(axes), *base]))
             except ConfigError as e:
                 where = ", ".join(p.overrides(axes))
                 raise ConfigError(f"{e}" + (f" (grid point {where})" if where else "")) from None

@@ -1,6 +1,10 @@
 """Training stages: what each stage trains and with which defaults (StageSpec, SPECS), the arguments of a
 training run (TrainArgs), and each stage's model: built from the `single` stage, frozen where it runs on cached
-features, saved and loaded as a checkpoint under --work."""
+features, saved and loaded as a checkpoint under --work.
+
+A fusion plugin (models.registry: an installed "v2vsim.fusion" entry point) is a stage of its own name, trained like
+the built-in `attfuse` / `fcooper` stages (stage_spec: fusion module + heads, the heads from `single`, on the cached
+features of the same frozen encoder and wire); it is not part of `all`, the shipped zoo's recipe."""
 
 from __future__ import annotations
 
@@ -16,7 +20,7 @@ from models.compression import ChannelCompressor
 from models.cooperative import CooperativePerception
 from models.extrapolation import FeatureExtrapolation
 from models.presets import get_preset
-from models.registry import MODALITY, build_cooperative, preset_image_backbone
+from models.registry import MODALITY, build_cooperative, check_methods, is_plugin, preset_image_backbone
 from v2vsim.data.layout import DatasetError
 
 FUSION_STAGES = ("attfuse", "fcooper", "v2vnet", "cobevt", "disconet")
@@ -86,6 +90,17 @@ SPECS[EXTRAPOLATE] = StageSpec(EXTRAPOLATE, ("cobevt",), "cache", "coop", 3, 120
 # heads, one CAV's own map: the task loss through the heads plus the features' reconstruction error (relative
 # to their mean square), so that the decompressed map serves every fusion method, not only these heads.
 SPECS[COMPRESS] = StageSpec(COMPRESS, (), "cache", "self", 3, 1200, 4, 5e-3, 1, (0,), recon_weight=4.0)
+# A fusion plugin's stage: the built-in fusion stages' defaults (FUSION_STAGES), under the plugin's name.
+PLUGIN_SPEC = SPECS["attfuse"]
+
+
+def stage_spec(name: str) -> StageSpec:
+    """The defaults of stage `name`: SPECS, or for a fusion plugin (models.registry) those of every fusion stage
+    (PLUGIN_SPEC) under its name; ValueError (a PluginError for a plugin that cannot be used) otherwise."""
+    if name in SPECS:
+        return SPECS[name]
+    stages_for(name)
+    return dataclasses.replace(PLUGIN_SPEC, name=name, methods=(name,))
 
 
 @dataclass(frozen=True)
@@ -299,8 +314,18 @@ def state_to_save(model: nn.Module, spec: StageSpec) -> dict:
 
 
 def stages_for(name: str, encoder: str = "pointpillars") -> list[str]:
+    """The stages `--stage name` runs: `all` = the shipped zoo's recipe (STAGE_ORDER; not the plugins), else the
+    named stage, a fusion plugin's too (imported and checked against the fusion contract: PluginError if broken)."""
     if name == "all":  # a camera zoo: no early fusion (LiDAR points), and its 32 x 32 message fits uncompressed
         return [s for s in STAGE_ORDER if MODALITY[encoder] == "lidar" or s not in ("early", COMPRESS)]
-    if name not in STAGE_ORDER + EXTRA_STAGES:
-        raise ValueError(f"--stage {name!r}: allowed: all, {', '.join(STAGE_ORDER + EXTRA_STAGES)}")
-    return [name]
+    if name in STAGE_ORDER + EXTRA_STAGES:
+        return [name]
+    if is_plugin(name):
+        check_methods([name])
+        return [name]
+    from models.registry import fusion_names
+
+    plugins = [m for m in fusion_names() if is_plugin(m)]
+    raise ValueError(f"--stage {name!r}: allowed: all, {', '.join(STAGE_ORDER + EXTRA_STAGES)}"
+                     + (f", or a fusion plugin's name: {', '.join(plugins)}" if plugins else
+                        " (or an installed fusion plugin's name: none is installed)"))

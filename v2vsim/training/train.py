@@ -7,7 +7,7 @@ and its DiscoNet trains without distillation (its teacher is early fusion).
              targets: the vehicles the CAV's own sensors saw (others are ignored, not negatives)
     cache    the frozen single-agent encoder's features of every CAV frame, float16 (the wire payload)
     early    encoder + heads (from `single`) on clouds merged in the ego frame (OPV2V early fusion)
-    attfuse / fcooper / v2vnet / cobevt
+    attfuse / fcooper / v2vnet / cobevt, and a fusion plugin's stage (its name; not part of `all`)
              fusion module + heads (heads from `single`) on the cached features of the ego and the
              CAVs within range, neighbours randomly 0-1 frames old (a 27 Mbps link delivers one frame late)
     disconet as above, plus DiscoNet's distillation: its fused map is pulled towards the early-fusion
@@ -38,7 +38,7 @@ from torch import Tensor, nn
 from models import zoo
 from models.compression import ChannelCompressor
 from models.heads import AnchorTargetAssigner
-from models.registry import MODALITY, is_intermediate
+from models.registry import MODALITY, intermediate_methods, is_intermediate
 from v2vsim.data.layout import DatasetError, runs_of
 from v2vsim.data.torch_dataset import CooperativeDataset, collate, open_store, tensor_inputs
 from v2vsim.training.augment import yaw_rotate_batch
@@ -66,6 +66,7 @@ from v2vsim.training.stages import (
     param_groups,
     stage_dir,
     stage_file,
+    stage_spec,
     stages_for,
     state_to_save,
     train_cells,
@@ -154,7 +155,7 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
                             stride=CACHE_STRIDE, log=log, camera=camera)
         write_cache_encoder(args.work / "cache", source, encoder.state_dict())
         return {}
-    spec = dataclasses.replace(SPECS[args.stage], **dict(args.overrides))
+    spec = dataclasses.replace(stage_spec(args.stage), **dict(args.overrides))
     if spec.name == COMPRESS:
         if camera or len(args.ratios) != 1:
             raise ValueError(f"--stage compress: one ratio per run of the stage (main_train loops over --ratios), "
@@ -376,9 +377,9 @@ def on_wire(args: TrainArgs, spec: StageSpec) -> StageSpec:
     comm.channel_compression: R load; on the zoo's own wire ratio it is the stage as usual."""
     if args.wire_ratio < 1 or spec.name == EXTRAPOLATE or spec.inputs != "cache" or len(spec.methods) != 1 \
             or not is_intermediate(spec.methods[0]):
-        raise ValueError(f"--wire-ratio {args.wire_ratio}: trains an intermediate fusion method (attfuse, fcooper, "
-                         f"v2vnet, disconet, cobevt) on another wire; stage {spec.name!r} fuses no neighbours' "
-                         "features (the ratio must be >= 1)")
+        raise ValueError(f"--wire-ratio {args.wire_ratio}: trains an intermediate fusion method "
+                         f"({', '.join(intermediate_methods())}) on another wire; stage {spec.name!r} fuses no "
+                         "neighbours' features (the ratio must be >= 1)")
     entry = zoo.zoo_entry(args.encoder, args.preset, args.out)
     if args.wire_ratio == zoo.wire_ratio(entry):
         return spec
