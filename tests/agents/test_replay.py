@@ -5,6 +5,7 @@ change is scored without re-simulating; a sender-side change is refused in one l
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -86,3 +87,21 @@ def test_record_messages_is_refused_in_realtime(tmp_path: Path) -> None:
     r = _cli("run", SCENARIO, "--frames", "2", "--out", str(tmp_path), "--set", "output.record_messages=true",
              "--set", "transport.clock=realtime")
     assert r.returncode == 2 and "output.record_messages" in r.stderr and "lockstep" in r.stderr
+
+
+def test_a_cav_killed_mid_run_is_lost_at_the_same_frame_in_the_replay(tmp_path: Path) -> None:
+    from tests.agents.test_run import Run
+
+    out = tmp_path / "live"
+    run = Run("--frames", "30", "--out", str(out), "--set", "cavs.count=3", "--set", "comm.range_m=300",
+              "--methods", "none,cobevt", "--set", "output.rerun=false", "--set", "output.record_messages=true")
+    run.wait_frames(10)
+    victims = [p for p in run.children() if "agents.cav" in " ".join(p.cmdline()) and "cav2" in p.cmdline()]
+    assert len(victims) == 1
+    victims[0].send_signal(signal.SIGKILL)
+    assert run.finish() == 0, "".join(run.log)
+    live = json.loads((out / "metrics.json").read_text())
+    assert "cav2" in live["lost_agents"] and live["status"] == "complete"
+    assert Recording(out).header["lost_agents"] == live["lost_agents"]
+    replay = _replay(out, tmp_path / "replay")
+    assert _scores(replay) == _scores(live)
