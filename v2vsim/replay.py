@@ -66,6 +66,9 @@ def evaluate(recording: Path, overrides: list[str], out: Path, frames: int | Non
         if not 1 <= frames <= n:
             raise ConfigError(f"--frames {frames}: the recording has {n} frames; allowed: 1..{n}")
         n = frames
+    if out.resolve() in (rec.folder.resolve(), rec.folder.parent.resolve()):
+        raise ConfigError(f"--out {out}: the recorded run's own folder; its metrics.json and report would be "
+                          "overwritten: choose another folder")
     check_output_dir(out, "--out")
     from v2vsim.perception.build import check_scenario
 

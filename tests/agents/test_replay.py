@@ -81,6 +81,8 @@ def test_evaluate_changes_receiver_side_keys_and_refuses_sender_side_ones(tmp_pa
     assert r.returncode == 2 and "perception.methods" in r.stderr and "points" in r.stderr
     r = _cli("evaluate", str(tmp_path / "nothing"), "--out", str(tmp_path / "bad"))
     assert r.returncode == 2 and "no recording" in r.stderr
+    r = _cli("evaluate", str(tmp_path / "live"), "--out", str(tmp_path / "live"))
+    assert r.returncode == 2 and "overwritten" in r.stderr
 
 
 def test_record_messages_is_refused_in_realtime(tmp_path: Path) -> None:
