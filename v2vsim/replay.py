@@ -19,6 +19,7 @@ RECEIVER_SIDE = (
     "name", "duration_s", "comm.range_m", "comm.latency_ms", "comm.drop", "comm.bandwidth_mbps", "comm.max_age_ms",
     "comm.fusion_deadline_ms", "comm.compensation", "comm.pose_noise", "comm.channel", "comm.medium",
     "perception.methods", "evaluation", "output", "transport.pipeline",
+    "transport.mode", "transport.connect", "transport.listen",  # how the processes met: no bus in a replay
 )
 
 
