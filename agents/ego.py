@@ -35,6 +35,7 @@ from agents.common import (
 )
 from agents.ego_collect import bytes_for, collect, control_rejections, reject_leftovers
 from agents.ego_mailbox import Mailbox, Window, cav_died, notify, put_world, set_done, wait_messages, wait_world
+from agents.ego_replay import ReplayBus
 from agents.ego_scoring import AfterFusion, FusedFrame, signals_deferred
 from agents.progress import report_progress
 from agents.timing import StageTimer
@@ -57,6 +58,7 @@ from v2vsim.perception.build import (
     wire_ratio,
 )
 from v2vsim.perception.extrapolate import extrapolate_features
+from v2vsim.recording.messages import MessageTape
 from v2vsim.recording.recorder import Recorder
 from v2vsim.recording.scan import max_scan_bytes
 from v2vsim.sensors.scene import build_map_assets
@@ -76,7 +78,9 @@ def compensation_schemes(sc: Scenario, methods: list[str], extrapolations: dict[
     return out
 
 
-def ego_loop(args: AgentArgs, bus: Bus) -> int:
+def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None) -> int:
+    """The ego's whole run. `replay` (v2vsim evaluate): `bus` is a ReplayBus that feeds a recording's frames
+    straight into the mailbox, after the arrival checks they passed when recorded; everything else is the same."""
     torch.set_num_threads(1)
     sc = args.scenario
     me = args.cav
@@ -89,7 +93,8 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
     models = build_method_models(sc, encoder, runnable_methods(sc))
     # comm.compensation: each intermediate method whose zoo ships a trained extrapolation (never a random one)
     extrapolations = {m: e for m in models if sc.comm.compensation and (e := build_extrapolation(sc, m)) is not None}
-    static = static_from_bytes(bus.fetch("static", "main", START_TIMEOUT_S))
+    static_bytes = bus.fetch("static", "main", START_TIMEOUT_S)
+    static = static_from_bytes(static_bytes)
     assets = build_map_assets(static)
     c, f = encoder.out_channels, encoder.out_cells
     compressor, ratio = build_compressor(sc, c), wire_ratio(sc)
@@ -108,6 +113,8 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
                                                                        "scan": max_scan_bytes(sc)}
                   | ({"own": own_decoder.max_bytes("features")} if own_decoder is not None else {}),
                   check=check, window=Window.for_scenario(sc))
+    if replay is not None:
+        replay.attach(box)
     for kind in [*kinds, *side, *(["own"] if own_decoder is not None else [])]:
         bus.subscribe(kind, lambda sender, data, kind=kind: box.put(kind, sender, data))
     bus.subscribe("world", lambda sender, data: put_world(box, data))
@@ -128,6 +135,11 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
                          skipped=[m for m in methods if m not in models],
                          compensation=compensation_schemes(sc, list(models), extrapolations),
                          grid_cells=f, channels=c, wire_ratio=ratio)
+    tape = MessageTape(out_dir / "messages", sc, run_id=args.run_id, ego=me, cavs=list(args.cavs),
+                       frames=args.frames, kinds=kinds, side=[*side, *(["own"] if own_decoder is not None else [])],
+                       static=static_bytes) if sc.output.record_messages else None
+    if tape is not None:
+        box.on_collect = tape.collected
     timer = StageTimer()
     after = AfterFusion(scores, recorder, timer)
     bus.ready()
@@ -164,6 +176,8 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
                 break
             k, data = got
             working = k
+            if tape is not None:
+                tape.world(k, data)
             with timer.stage("comm"):
                 world = world_from_bytes(data, static)
             ego_actor = world.actor(me)
@@ -247,6 +261,8 @@ def ego_loop(args: AgentArgs, bus: Bus) -> int:
             write_outputs(out_dir, summary, scores, stats, by_kind, box_iou)
             if recorder is not None:
                 recorder.close()
+            if tape is not None:
+                tape.close(status=status, lost=lost, control=bus.control_rejections())
         if late_error is not None:
             raise late_error
     return code

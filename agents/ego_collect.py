@@ -42,6 +42,8 @@ def collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str], 
                 del box.raw[(kind, f)]
         box.mark_collected(k)
         early, box.rejected = box.rejected, Counter()
+    if box.on_collect is not None:  # a recorded run: exactly what this frame works on
+        box.on_collect(k, raw, early)
     for (kind, reason), n in early.items():
         if kind in inboxes:
             _count_rejected(inboxes, kind, reason, n)

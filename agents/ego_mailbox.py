@@ -76,6 +76,8 @@ class Mailbox:
         self.check = check
         self.window = window
         self._held: dict[int, set[tuple[str, str]]] = defaultdict(set)  # frame -> {(kind, sender)} ever kept
+        # output.record_messages: told what collect() took for each frame (v2vsim.recording.messages.MessageTape)
+        self.on_collect: Callable[[int, dict[str, list[tuple[str, bytes]]], Counter], None] | None = None
 
     def put(self, kind: str, sender: str, data: bytes) -> None:
         limit = self.limits.get(kind, 0)

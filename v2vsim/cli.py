@@ -53,6 +53,18 @@ def _cmd_run(args: argparse.Namespace) -> int:
     return run(scenario, out, frames=args.frames, remote_cavs=remote, run_id=args.run_id)
 
 
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    overrides = list(args.overrides)
+    methods = _method_names(args.methods)
+    if methods:
+        overrides.append(f"perception.methods=[{methods}]")
+    if args.frames is not None and args.frames < 1:
+        raise ConfigError(f"--frames {args.frames}: expected a number of frames >= 1")
+    from v2vsim.replay import evaluate
+
+    return evaluate(Path(args.recording), overrides, Path(args.out), frames=args.frames)
+
+
 def _cmd_agent(args: argparse.Namespace) -> int:
     load_scenario(args.scenario, args.overrides)  # a clear error before anything starts
     from agents.cav import main as cav_main
@@ -256,6 +268,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--remote-cavs", default=None, help="CAV ids started on other hosts with `v2vsim agent`")
     p.add_argument("--run-id", default=None, help="run id (default: random); remote agents must use the same")
     p.set_defaults(func=_cmd_run)
+
+    p = sub.add_parser("evaluate", help="replay the ego over a recorded run (output.record_messages) with other "
+                       "receiver-side keys or methods: no SUMO, sensing or encoding (docs/run.md)")
+    p.add_argument("recording", help="a run folder with messages/ (or the messages/ folder itself)")
+    p.add_argument("--methods", default=None, help="comma-separated fusion methods, e.g. none,late,cobevt")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY.PATH=VALUE",
+                   help="override a receiver-side key, e.g. --set comm.drop.p=0.3 (repeatable)")
+    p.add_argument("--frames", type=int, default=None, help="replay only the first N frames")
+    p.add_argument("--out", required=True, help="output directory: metrics.json, report.md, plots")
+    p.set_defaults(func=_cmd_evaluate)
 
     p = sub.add_parser("agent", help="run one CAV perception agent of a run started elsewhere (across hosts)")
     _scenario_args(p)

@@ -38,6 +38,9 @@ def _check_cross_fields(sc: Scenario, loader: _Loader) -> None:
                     f"allowed: 0 <= value < {1000.0 / sc.rate_hz:g}")
     if not math.isfinite(sc.duration_s * sc.rate_hz):
         loader.fail("duration_s", f"{sc.duration_s:g} s at rate_hz {sc.rate_hz:g} is more frames than can be counted")
+    if sc.output.record_messages and sc.transport.clock != "lockstep":
+        loader.fail("output.record_messages", "true needs transport.clock lockstep: in realtime what the ego has "
+                    "at a frame depends on wall-clock arrival order, which a replay cannot reproduce")
     _check_egos(sc, loader)
     _check_key_file(sc, loader)
     for name in ("listen", "connect"):

@@ -242,6 +242,9 @@ class EvaluationConfig:
 class OutputConfig:
     dir: str = "runs/intersection"
     rerun: bool = True
+    # true: the ego also keeps what it received, frame by frame (messages/ beside metrics.json, docs/run.md
+    # "Record once, evaluate many"), for `v2vsim evaluate` to replay with other receiver-side keys; lockstep only
+    record_messages: bool = False
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,109 @@
+"""Record once, evaluate many (issue 32): a lockstep run with output.record_messages, then `v2vsim evaluate`
+over its recording with nothing changed gives the same scores and comm counts, bit for bit; a receiver-side
+change is scored without re-simulating; a sender-side change is refused in one line (exit 2)."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from v2vsim.recording.messages import FORMAT, VERSION, Recording
+
+REPO = Path(__file__).resolve().parents[2]
+SCENARIO = str(REPO / "scenarios" / "intersection.yaml")
+LOSSY = ["--set", "cavs.count=3", "--set", "comm.range_m=300", "--methods", "none,late,cobevt",
+         "--set", "comm.drop.p=0.3", "--set", "comm.latency_ms={mean: 20, jitter: 30}",
+         "--set", "comm.fusion_deadline_ms=50", "--set", "comm.pose_noise={xy_std_m: 0.3, yaw_std_deg: 1.0}",
+         "--set", "output.rerun=false"]
+
+
+def _cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "v2vsim.cli", *args], capture_output=True, text=True, cwd=REPO,
+                          timeout=timeout)
+
+
+def _scores(m: dict) -> dict:
+    """Everything in metrics.json that must not depend on wall-clock timing (as tests/agents/test_run.py)."""
+    methods = {name: {k: v for k, v in r.items() if k != "fusion_ms"} for name, r in m["methods"].items()}
+    return {"comm": m["comm"], "methods": methods, "frames": m["frames"], "status": m["status"],
+            "lost_agents": m.get("lost_agents")}
+
+
+def _record(out: Path, *extra: str) -> dict:
+    r = _cli("run", SCENARIO, "--frames", "6", "--out", str(out), *LOSSY, "--set", "output.record_messages=true",
+             *extra)
+    assert r.returncode == 0, r.stderr[-3000:]
+    return json.loads((out / "metrics.json").read_text())
+
+
+def _replay(rec: Path, out: Path, *extra: str) -> dict:
+    r = _cli("evaluate", str(rec), "--out", str(out), *extra)
+    assert r.returncode == 0, r.stderr[-3000:]
+    return json.loads((out / "metrics.json").read_text())
+
+
+@pytest.mark.parametrize("extra", [[], ["--set", "comm.medium=shared", "--set", "comm.channel.model=tr37885",
+                                        "--set", "comm.compensation=true"]], ids=["per_link", "shared_tr37885"])
+def test_evaluate_over_a_recording_is_the_live_run_bit_for_bit(tmp_path: Path, extra: list[str]) -> None:
+    live = _record(tmp_path / "live", *extra)
+    assert live["status"] == "complete" and live["comm"]["delivered"] > 0 and live["comm"]["dropped"] > 0
+    rec = Recording(tmp_path / "live")
+    assert rec.header["format"] == FORMAT and rec.header["version"] == VERSION and rec.header["frames"] == 6
+    assert rec.header["kinds"] == ["features", "outputs"] and rec.header["status"] == "complete"
+    frames = list(rec.frames())
+    assert [k for k, _ in frames] == list(range(6))
+    assert all(len(f.raw["features"]) == 3 and len(f.raw["outputs"]) == 3 for _, f in frames)  # every live CAV
+    replay = _replay(tmp_path / "live", tmp_path / "replay")
+    assert _scores(replay) == _scores(live)
+    assert (tmp_path / "replay" / "report.md").exists()
+
+
+def test_evaluate_changes_receiver_side_keys_and_refuses_sender_side_ones(tmp_path: Path) -> None:
+    live = _record(tmp_path / "live")
+    # a receiver-side change: a clean channel, fewer methods, no re-simulation
+    clean = _replay(tmp_path / "live", tmp_path / "clean", "--methods", "none,cobevt", "--set", "comm.drop.p=0")
+    assert set(clean["methods"]) == {"none", "cobevt"} and clean["comm"]["dropped"] == 0
+    assert clean["comm"]["delivered"] > live["comm"]["delivered"]
+    assert clean["methods"]["none"] == {**live["methods"]["none"], "fusion_ms": clean["methods"]["none"]["fusion_ms"]}
+    for args, key in ((["--set", "cavs.count=2"], "cavs.count"), (["--set", "seed=7"], "seed"),
+                      (["--set", "perception.preset=paper"], "perception.preset"),
+                      (["--set", "comm.channel_compression=8"], "comm.channel_compression")):
+        r = _cli("evaluate", str(tmp_path / "live"), "--out", str(tmp_path / "bad"), *args)
+        assert r.returncode == 2, r.stderr
+        lines = r.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith(f"v2vsim: error: {key}:") and "sender-side" in lines[0]
+    r = _cli("evaluate", str(tmp_path / "live"), "--out", str(tmp_path / "bad"), "--methods", "none,early")
+    assert r.returncode == 2 and "perception.methods" in r.stderr and "points" in r.stderr
+    r = _cli("evaluate", str(tmp_path / "nothing"), "--out", str(tmp_path / "bad"))
+    assert r.returncode == 2 and "no recording" in r.stderr
+    r = _cli("evaluate", str(tmp_path / "live"), "--out", str(tmp_path / "live"))
+    assert r.returncode == 2 and "overwritten" in r.stderr
+
+
+def test_record_messages_is_refused_in_realtime(tmp_path: Path) -> None:
+    r = _cli("run", SCENARIO, "--frames", "2", "--out", str(tmp_path), "--set", "output.record_messages=true",
+             "--set", "transport.clock=realtime")
+    assert r.returncode == 2 and "output.record_messages" in r.stderr and "lockstep" in r.stderr
+
+
+def test_a_cav_killed_mid_run_is_lost_at_the_same_frame_in_the_replay(tmp_path: Path) -> None:
+    from tests.agents.test_run import Run
+
+    out = tmp_path / "live"
+    run = Run("--frames", "30", "--out", str(out), "--set", "cavs.count=3", "--set", "comm.range_m=300",
+              "--methods", "none,cobevt", "--set", "output.rerun=false", "--set", "output.record_messages=true")
+    run.wait_frames(10)
+    victims = [p for p in run.children() if "agents.cav" in " ".join(p.cmdline()) and "cav2" in p.cmdline()]
+    assert len(victims) == 1
+    victims[0].send_signal(signal.SIGKILL)
+    assert run.finish() == 0, "".join(run.log)
+    live = json.loads((out / "metrics.json").read_text())
+    assert "cav2" in live["lost_agents"] and live["status"] == "complete"
+    assert Recording(out).header["lost_agents"] == live["lost_agents"]
+    replay = _replay(out, tmp_path / "replay")
+    assert _scores(replay) == _scores(live)
