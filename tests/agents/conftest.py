@@ -16,6 +16,11 @@ from v2vsim.config import TransportConfig
 Sessions = tuple[zenoh.Session, zenoh.Session, zenoh.Session]
 
 
+def client_session(endpoint: str) -> zenoh.Session:
+    """A zenoh client of the router at `endpoint`, as an agent on another host (or an attacker) joins a run."""
+    return T.open_session(TransportConfig(mode="client", connect=(endpoint,)))
+
+
 def _listening(peers: list[str]) -> tuple[zenoh.Session, str]:
     for attempt in range(5):  # free_port can race with another process: take another one
         port = T.free_port()

@@ -23,7 +23,7 @@ from v2vsim.comm.codec import Message, decode, encode
 from v2vsim.comm.control import ControlPolicy, open_sealed, seal
 from v2vsim.config import load_scenario
 
-from .conftest import Sessions
+from .conftest import Sessions, client_session
 from .test_run import SCENARIO, Run, _metrics
 
 RUN = "hostile-bus"
@@ -307,14 +307,6 @@ def test_the_mailbox_holds_only_what_could_be_fused() -> None:
 # ---- end to end, through a router ---------------------------------------------------------------
 
 
-def _client(endpoint: str) -> zenoh.Session:
-    cfg = zenoh.Config()
-    for k, v in {"mode": "client", "scouting/multicast/enabled": False, "scouting/gossip/enabled": False,
-                 "connect/endpoints": [endpoint]}.items():
-        cfg.insert_json5(k, json.dumps(v))
-    return zenoh.open(cfg)
-
-
 def _next(sub: T.Subscriber, run: Run, timeout: float = 240) -> T.Received:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -337,7 +329,7 @@ def test_hostile_messages_neither_crash_nor_end_a_run(tmp_path: Path, router: st
     run = Run("--frames", str(frames), "--out", str(out), "--run-id", "hostile1", "--set", "cavs.count=2",
               "--methods", "none,late", "--set", "transport.mode=client", "--set", f"transport.connect=[{router}]",
               "--set", f"comm.auth.key_file={key_file}", "--set", "comm.range_m=1000", "--set", "output.rerun=false")
-    with _client(router) as session:
+    with client_session(router) as session:
         outputs = T.Subscriber(session, "v2vsim/hostile1/outputs/cav1")
         acks = T.Subscriber(session, "v2vsim/hostile1/ack/*")
         legit = decode(_next(outputs, run).data, key=key)

@@ -14,7 +14,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import zenoh
 
 import agents.common as common
 from agents.common import Bus
@@ -24,7 +23,7 @@ from v2vsim.comm.codec import Message, RejectedMessage, check_arrival, decode, e
 from v2vsim.comm.control import ControlPolicy, ReplayGuard, open_sealed, seal
 from v2vsim.comm.identity import IdentityError, issue, parse_identity, write_identity_file
 
-from .conftest import Sessions
+from .conftest import Sessions, client_session
 from .test_hostile import _matched, _wait
 from .test_run import REPO, SCENARIO, Run, _metrics
 
@@ -159,14 +158,6 @@ def test_a_token_without_a_signed_hello_is_nobody(sessions: Sessions, monkeypatc
 # ---- end to end: `v2vsim run` through a router, an attacker beside it ------------------------------
 
 
-def _client(endpoint: str) -> zenoh.Session:
-    cfg = zenoh.Config()
-    for k, v in {"mode": "client", "scouting/multicast/enabled": False, "scouting/gossip/enabled": False,
-                 "connect/endpoints": [endpoint]}.items():
-        cfg.insert_json5(k, json.dumps(v))
-    return zenoh.open(cfg)
-
-
 def test_identities_stop_impersonation_and_dangling_tokens(tmp_path: Path, router: str) -> None:
     """The issue's attacks on a per_process run, by a holder of one CAV's credentials (cav1 runs as a remote
     agent, so its identity file exists): a `done` signed as the driver with sequence 1e9, a `done` in its own
@@ -177,7 +168,7 @@ def test_identities_stop_impersonation_and_dangling_tokens(tmp_path: Path, route
     out = tmp_path / "run"
     sets = ["cavs.count=2", "comm.auth.identity=per_process", "transport.mode=client",
             f"transport.connect=[{router}]", "comm.range_m=1000", "output.rerun=false"]
-    with _client(router) as session:
+    with client_session(router) as session:
         fake = session.liveliness().declare_token(f"v2vsim/{run_id}/alive/ego.cav0")
         run = Run("--frames", str(frames), "--out", str(out), "--run-id", run_id, "--remote-cavs", "cav1",
                   "--methods", "none,cobevt", *[x for s in sets for x in ("--set", s)])
@@ -224,7 +215,7 @@ def test_without_auth_a_fake_ego_token_no_longer_hangs_the_run(tmp_path: Path, r
     listened, and both then waited forever. The driver now sends the worlds an ego has not acked again."""
     run_id, frames = "faketoken1", 8
     out = tmp_path / "run"
-    with _client(router) as session:
+    with client_session(router) as session:
         fake = session.liveliness().declare_token(f"v2vsim/{run_id}/alive/ego.cav0")
         run = Run("--frames", str(frames), "--out", str(out), "--run-id", run_id, "--methods", "none",
                   "--set", "cavs.count=2", "--set", "transport.mode=client", "--set",
@@ -249,7 +240,7 @@ def test_replays_and_near_future_copies_are_not_counted_as_fused_bytes(tmp_path:
               "--set", "cavs.count=2", "--set", "transport.mode=client", "--set", f"transport.connect=[{router}]",
               "--set", f"comm.auth.key_file={key_file}", "--set", "comm.range_m=1000", "--set", "output.rerun=false")
     genuine: dict[int, bytes] = {}
-    with _client(router) as session:
+    with client_session(router) as session:
         sub = T.Subscriber(session, f"v2vsim/{run_id}/features/cav1")
         deadline = time.monotonic() + 240
         while len(genuine) < 12 and time.monotonic() < deadline:

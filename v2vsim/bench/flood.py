@@ -20,6 +20,7 @@ import subprocess
 import sys
 import tempfile
 import threading
+import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
@@ -37,21 +38,12 @@ def _router(endpoint: str) -> subprocess.Popen[str]:
     return proc
 
 
-def _client(endpoint: str):  # noqa: ANN202 (zenoh.Session)
-    import zenoh
-
-    cfg = zenoh.Config()
-    for k, v in {"mode": "client", "scouting/multicast/enabled": False, "scouting/gossip/enabled": False,
-                 "connect/endpoints": [endpoint]}.items():
-        cfg.insert_json5(k, json.dumps(v))
-    return zenoh.open(cfg)
-
-
 def _flood(endpoint: str, messages: int, sent: list[int], stop: threading.Event) -> None:
     """Wait for a genuine cav1 feature message, then publish `messages` copies claiming frames 100+ ahead."""
-    from v2vsim.comm.transport import Publisher, Subscriber
+    from v2vsim.comm.transport import Publisher, Subscriber, open_session
+    from v2vsim.config import TransportConfig
 
-    with _client(endpoint) as session:
+    with open_session(TransportConfig(mode="client", connect=(endpoint,))) as session:
         sub = Subscriber(session, f"v2vsim/{RUN_ID}/features/cav1")
         genuine = None
         while genuine is None and not stop.is_set():
@@ -112,7 +104,7 @@ def _poll_ego_rss(proc: subprocess.Popen[bytes]) -> list[float | None]:
                         peak[0] = max(peak[0] or 0.0, c.memory_info().rss / 2**20)
             except psutil.Error:
                 pass
-            threading.Event().wait(0.1)
+            time.sleep(0.1)
 
     threading.Thread(target=poll, daemon=True).start()
     return peak
