@@ -210,7 +210,8 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     return sweep(SweepArgs(scenario=Path(args.scenario), grid=tuple(args.grid), seeds=args.seeds, out=Path(args.out),
                            frames=args.frames, jobs=args.jobs, overrides=tuple(args.overrides),
                            methods=_method_names(args.methods),
-                           bootstrap=args.bootstrap, engine=args.engine, scheduler=args.scheduler))
+                           bootstrap=args.bootstrap, engine=args.engine, scheduler=args.scheduler,
+                           replay=args.replay))
 
 
 def _cmd_bandwidth(args: argparse.Namespace) -> int:
@@ -372,12 +373,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--methods", default=None, help="comma-separated fusion methods, e.g. none,cobevt")
     p.add_argument("--jobs", type=int, default=None,
                    help="runs at a time (default 1, or the cluster's worker threads under --engine dask); one "
-                   "run keeps about 2 cores busy (its processes)")
+                   "simulated run keeps about 2 cores busy (its processes), so 2 replays run in its place")
     p.add_argument("--engine", choices=["local", "dask"], default="local",
                    help="local: child processes here; dask: one task per run on a Dask distributed cluster")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="with --engine dask: the scheduler, e.g. tcp://10.0.0.1:8786")
     p.add_argument("--bootstrap", type=int, default=1000, metavar="B", help="bootstrap resamples (default 1000)")
+    p.add_argument("--no-replay", dest="replay", action="store_false",
+                   help="simulate every run (default: record the first point of each seed and replay the points "
+                   "that differ from it only in receiver-side keys with `v2vsim evaluate`)")
     p.add_argument("--out", required=True, help="sweep directory (resumable: complete runs there are reused)")
     p.set_defaults(func=_cmd_sweep)
 

@@ -5,6 +5,12 @@ A run counts as done when its metrics.json says status "complete" and its `sweep
 sweep asked for: the scenario as loaded with the run's overrides, the frames, and the sha256 of the
 weights it loads) matches the current request; anything else is (re)run. A run's own output (its
 progress lines, errors) goes to `sweep-run.log` in its directory.
+
+Record once, replay the rest (docs/study.md "Replayed runs"): the CAV side of a run (traffic, sensing,
+encoding, what goes on the air) depends only on the seed and the sender-side keys, so at each seed the first
+point of every group of points that differ only in receiver-side keys (v2vsim.replay.RECEIVER_SIDE) is run
+with `output.record_messages=true`, and every other point of the group is `v2vsim evaluate` over that
+recording once it is complete: bit for bit the run it stands for, at the cost of the ego alone.
 """
 
 from __future__ import annotations
@@ -40,10 +46,19 @@ class RunSpec:
     out: Path
     grid: tuple[str, ...]  # the point's overrides, KEY=VALUE
     request: dict  # scenario digest, overrides (seed first), frames: what makes two runs the same run
+    recording: Path | None = None  # a replayed run: the run folder whose messages/ it replays
+    records: bool = False  # a recording run: other points of its seed replay it
+
+    @property
+    def replayed(self) -> bool:
+        return self.recording is not None
 
     def argv(self, scenario: Path, out: Path | None = None) -> list[str]:
         """`python` arguments of the run (`out`: write elsewhere than self.out, e.g. on a cluster worker)."""
-        args = ["-m", "v2vsim.cli", "run", str(scenario), "--out", str(out or self.out)]
+        if self.recording is not None:
+            args = ["-m", "v2vsim.cli", "evaluate", str(self.recording), "--out", str(out or self.out)]
+        else:
+            args = ["-m", "v2vsim.cli", "run", str(scenario), "--out", str(out or self.out)]
         args += [x for o in self.request["overrides"] for x in ("--set", o)]
         if self.request["frames"] is not None:
             args += ["--frames", str(self.request["frames"])]
@@ -125,17 +140,58 @@ def weights_fingerprint(scenario: Path, overrides: Sequence[str]) -> str | None:
     return sha256(path) if path.is_file() else None
 
 
+RECORD = "output.record_messages=true"
+
+
+def replay_groups(axes: Sequence[Axis], pts: Sequence[Point]) -> list[int]:
+    """For each point, the index of the point whose recording it can replay (itself when it must be run):
+    the first point with the same values on every axis that is not receiver-side. The methods and the output
+    keys count as sender-side here: a recording holds the kinds its own methods took, and its scans only
+    with output.rerun on."""
+    from v2vsim.replay import receiver_side
+
+    def sender_side(key: str) -> bool:
+        return not receiver_side(key) or key.startswith(("perception.methods", "output"))
+
+    first: dict[tuple[str, ...], int] = {}
+    out = []
+    for i, p in enumerate(pts):
+        key = tuple(t for a, t in zip(axes, p.texts, strict=True) if sender_side(a.key))
+        out.append(first.setdefault(key, i))
+    return out
+
+
+def replay_refusal(scenario: Path, base: Sequence[str]) -> str | None:
+    """Why the sweep's runs cannot be recorded and replayed, or None when they can."""
+    sc = load_scenario(scenario, base)
+    if sc.transport.clock != "lockstep":
+        return "transport.clock is realtime: its runs depend on the wall clock, and a recording needs lockstep"
+    return None
+
+
 def plan(scenario: Path, axes: Sequence[Axis], pts: Sequence[Point], seeds: Sequence[int], base: Sequence[str],
-         frames: int | None, out: Path) -> list[RunSpec]:
-    """Every (point, seed) run, point-major: the same seeds at every point (a paired design)."""
-    specs = []
-    for p in pts:
-        config = effective_config(scenario, [*p.overrides(axes), *base])
+         frames: int | None, out: Path, replay: bool = False) -> list[RunSpec]:
+    """Every (point, seed) run, point-major: the same seeds at every point (a paired design). With `replay`,
+    a point that differs from an earlier one only in receiver-side keys replays that point's recording of the
+    same seed (replay_groups): the earlier point's runs record."""
+    groups = replay_groups(axes, pts) if replay else list(range(len(pts)))
+    recorders = {g for i, g in enumerate(groups) if g != i}
+    specs: list[RunSpec] = []
+    where: dict[tuple[int, int], Path] = {}
+    for i, p in enumerate(pts):
+        records = i in recorders
+        extra = [RECORD] if records else []
+        config = effective_config(scenario, [*p.overrides(axes), *base, *extra])
         weights = weights_fingerprint(scenario, [*p.overrides(axes), *base])
         for s in seeds:
-            request = {"scenario": str(scenario), "overrides": [f"seed={s}", *p.overrides(axes), *base],
+            run_dir = out / "runs" / p.pid / f"seed{s}"
+            request = {"scenario": str(scenario), "overrides": [f"seed={s}", *p.overrides(axes), *base, *extra],
                        "frames": frames, "config": config | {"seed": s}, "weights": weights}
-            specs.append(RunSpec(p, s, out / "runs" / p.pid / f"seed{s}", tuple(p.overrides(axes)), request))
+            recording = where[(groups[i], s)] if groups[i] != i else None
+            if recording is not None:
+                request["replay_of"] = str(recording)
+            where[(i, s)] = run_dir
+            specs.append(RunSpec(p, s, run_dir, tuple(p.overrides(axes)), request, recording, records))
     return specs
 
 
@@ -147,10 +203,22 @@ def read_metrics(run_dir: Path) -> dict | None:
     return doc if isinstance(doc, dict) else None
 
 
+def recording_complete(run_dir: Path) -> bool:
+    """Whether run_dir holds a recording of all its frames (messages/header.json, status complete)."""
+    try:
+        header = json.loads((run_dir / "messages" / "header.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(header, dict) and header.get("status") == "complete"
+
+
 def is_done(spec: RunSpec) -> bool:
-    """Complete metrics.json from the same request (a run from before the sweep wrote requests counts)."""
+    """Complete metrics.json from the same request (a run from before the sweep wrote requests counts); a
+    recording run also needs its complete recording."""
     doc = read_metrics(spec.out)
     if doc is None or doc.get("status") != "complete":
+        return False
+    if spec.records and not recording_complete(spec.out):
         return False
     try:
         asked = json.loads((spec.out / REQUEST).read_text())
@@ -259,11 +327,18 @@ class Progress:
         self.stream.flush()
 
 
+def slots(spec: RunSpec) -> int:
+    """Core slots a run takes: a simulated run keeps about two cores busy (driver, CAVs, ego), a replay is one
+    process."""
+    return 1 if spec.replayed else 2
+
+
 def execute(specs: Sequence[RunSpec], jobs: int, start: Callable[[RunSpec], Job], progress: Progress,
             poll_s: float = 0.2) -> tuple[list[RunResult], bool]:
-    """Run what is not done yet, up to `jobs` at a time; returns (results, interrupted). A failed run is
-    reported and the others go on. On KeyboardInterrupt the running children get SIGINT (they write
-    partial results), then SIGKILL after STOP_GRACE_S; finished runs are kept."""
+    """Run what is not done yet, up to `jobs` simulated runs at a time, or two replays for each (slots);
+    returns (results, interrupted). A failed run is reported and the others go on. On KeyboardInterrupt the
+    running children get SIGINT (they write partial results), then SIGKILL after STOP_GRACE_S; finished runs
+    are kept."""
     results: list[RunResult] = []
     pending: list[RunSpec] = []
     for s in specs:
@@ -274,10 +349,33 @@ def execute(specs: Sequence[RunSpec], jobs: int, start: Callable[[RunSpec], Job]
     progress.t0 = time.monotonic()
     progress.reused = progress.done = len(results)
     running: list[tuple[RunSpec, Job, float]] = []
+    outcome = {r.spec.out: r for r in results}
+
+    def next_ready(free: int) -> RunSpec | None:
+        """The first pending run that can start, if it fits in `free` core slots: a replay once its recording
+        run has finished well; one whose recording run failed fails at once, saying so."""
+        for i, spec in enumerate(pending):
+            if spec.recording is not None:
+                source = outcome.get(spec.recording)
+                if source is None:
+                    continue
+                if not (source.ok and recording_complete(spec.recording)):
+                    fail_replay(pending.pop(i))
+                    return next_ready(free)
+            return pending.pop(i) if slots(spec) <= free else None
+        return None
+
+    def fail_replay(spec: RunSpec) -> None:
+        why = f"not replayed: the run it replays ({spec.recording}) failed or left no complete recording"
+        r = RunResult(spec, False, why=why)
+        results.append(r)
+        outcome[spec.out] = r
+        progress.done += 1
+        progress.failed += 1
+        progress.say(f"v2vsim sweep: run {describe(spec)} failed ({why})")
 
     def fill() -> None:
-        while pending and len(running) < jobs:
-            spec = pending.pop(0)
+        while (spec := next_ready(2 * jobs - sum(slots(x) for x, _, _ in running))) is not None:
             spec.out.mkdir(parents=True, exist_ok=True)
             (spec.out / "metrics.json").unlink(missing_ok=True)  # stale, or another request's
             (spec.out / REQUEST).write_text(json.dumps(spec.request, indent=2))
@@ -299,6 +397,7 @@ def execute(specs: Sequence[RunSpec], jobs: int, start: Callable[[RunSpec], Job]
             for (spec, _, t0), code in finished:
                 r = _finish(spec, code, time.monotonic() - t0)
                 results.append(r)
+                outcome[spec.out] = r
                 progress.done += 1
                 progress.walls += (r.wall_s,)
                 if not r.ok:

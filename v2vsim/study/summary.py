@@ -181,13 +181,19 @@ def sweep_md(meta: dict, axes: Sequence[Axis], rows: Sequence[Row], stats: Seque
     lines.append(f"Scenario `{meta['scenario']}`; {len(meta['points'])} grid point(s) x {len(seeds)} seed(s) "
                  f"({seeds[0]}-{seeds[-1]}), {meta['frames'] or 'all'} frames per run; overrides: "
                  + (", ".join(f"`{o}`" for o in meta["overrides"]) or "none") + ".")
-    lines.append(f"Runs: {meta['runs']['complete']} complete ({meta['runs']['reused']} reused), "
+    runs = meta["runs"]
+    lines.append(f"Runs: {runs['complete']} complete ({runs['reused']} reused), "
                  f"{len(failed)} failed" + (", **interrupted**" if meta.get("interrupted") else "") + ".")
+    if runs.get("replayed"):
+        lines.append(f"{runs['simulated']} runs simulated, {runs['replayed']} replayed with `v2vsim evaluate` "
+                     "from the recording of the same seed at a point that differs only in receiver-side keys "
+                     "(bit for bit the runs they stand for); replayed points: "
+                     + ", ".join(f"`{p}`" for p in runs["replayed_points"]) + ".")
     bs = meta["bootstrap"]
     lines += ["", f"Cells: mean over seeds [{int(100 * LEVEL)}% interval]: a paired two-level bootstrap (B = "
               f"{bs['b']}, RNG seed {bs['rng_seed']}) resamples seeds, then frames within each seed where per-frame "
-              "values exist (the per-frame vehicle IoU, read from each run's recording.rrd: sweep with "
-              "`--set output.rerun=true`); the other metrics are whole-run values, resampled over seeds. "
+              "values exist (the per-frame vehicle IoU each run keeps in its metrics.json); the other metrics are "
+              "whole-run values, resampled over seeds. "
               "Percentile intervals, expanded for the number of seeds (Hesterberg's expanded percentile; the plain "
               "one covers ~90% at 10 seeds). Differences are a - b on the same seeds (and frames); **\\*** = the "
               "interval excludes 0. Fewer than 5 seeds: treat the intervals as rough.", ""]

@@ -1,7 +1,8 @@
 """`v2vsim sweep`: run a scenario over a grid of overrides x seeds, then tabulate and plot the methods'
 metrics with 95% bootstrap intervals (DESIGN.md "Studies, channel and environment").
 
-    DIR/runs/<point>/seed<k>/   each run's own output (metrics.json, report.md, sweep-run.log, ...)
+    DIR/runs/<point>/seed<k>/   each run's own output (metrics.json, report.md, sweep-run.log, ...); a
+                                run other points replay keeps its recording there (messages/)
     DIR/sweep.csv               one row per (grid point, seed, method): swept keys, seed, method, metrics
     DIR/sweep.json              grid, seeds, frames, rows, statistics, failed runs
     DIR/sweep.md                per swept key: mean [95% CI] per method and point, paired differences
@@ -20,7 +21,7 @@ from typing import TextIO
 from v2vsim.config import ConfigError, check_output_dir, find_scenario, load_scenario
 from v2vsim.study.grid import Axis, Point, base_overrides, parse_axes, parse_seeds, points, validate
 from v2vsim.study.rows import collect, methods_of
-from v2vsim.study.runs import LOG, Job, Progress, RunResult, RunSpec, execute, plan, start_process
+from v2vsim.study.runs import LOG, Job, Progress, RunResult, RunSpec, execute, plan, replay_refusal, start_process
 from v2vsim.study.stats import DEFAULT_B, DEFAULT_RNG_SEED, LEVEL
 
 EXIT_FAILED, EXIT_INTERRUPTED = 1, 130
@@ -39,6 +40,7 @@ class SweepArgs:
     bootstrap: int = DEFAULT_B
     engine: str = "local"  # local | dask (v2vsim/study/cluster.py)
     scheduler: str | None = None  # dask: the scheduler's address, e.g. tcp://10.0.0.1:8786
+    replay: bool = True  # record once per seed, replay the points that differ only in receiver-side keys
 
 
 @dataclass(frozen=True)
@@ -52,6 +54,7 @@ class Design:
     seeds: list[int]
     base: list[str]
     specs: list[RunSpec]
+    no_replay: str | None  # why nothing is replayed (None: replays where the grid allows)
 
 
 def prepare(args: SweepArgs) -> Design:
@@ -74,8 +77,24 @@ def prepare(args: SweepArgs) -> Design:
     pts = points(axes)
     validate(Path(args.scenario), axes, pts, base, seeds)
     check_output_dir(args.out, "--out")
-    specs = plan(scenario, axes, pts, seeds, base, args.frames, args.out)
-    return Design(scenario, sc.name, axes, pts, seeds, base, specs)
+    no_replay = ("--no-replay" if not args.replay else
+                 "--engine dask (a recording stays on the worker that made it)" if args.engine == "dask" else
+                 replay_refusal(scenario, base))
+    specs = plan(scenario, axes, pts, seeds, base, args.frames, args.out, replay=no_replay is None)
+    return Design(scenario, sc.name, axes, pts, seeds, base, specs, no_replay)
+
+
+def replay_line(d: Design) -> str:
+    """What the sweep simulates and what it replays, in words."""
+    replayed = [s for s in d.specs if s.replayed]
+    if not replayed:
+        why = d.no_replay or "every grid point differs from the others in a sender-side key"
+        return f"v2vsim sweep: every run is simulated ({why})"
+    recorders = sorted({s.point.pid for s in d.specs if s.records})
+    points = sorted({s.point.pid for s in replayed})
+    return (f"v2vsim sweep: {len(d.specs) - len(replayed)} runs simulated, {len(replayed)} replayed "
+            f"(v2vsim evaluate) from the recordings of point(s) {', '.join(recorders)} at the same seed; "
+            f"replayed point(s): {', '.join(points)}")
 
 
 def sweep(args: SweepArgs, start: Callable[[RunSpec], Job] | None = None, stream: TextIO | None = None) -> int:
@@ -92,7 +111,9 @@ def sweep(args: SweepArgs, start: Callable[[RunSpec], Job] | None = None, stream
         start = lambda spec: DaskJob(client, spec, d.scenario)  # noqa: E731
     where = f" on the Dask cluster at {args.scheduler}" if client is not None else ""
     print(f"v2vsim sweep: {len(d.points)} point(s) x {len(d.seeds)} seed(s) = {len(d.specs)} runs, "
-          f"{jobs} at a time{where} -> {args.out}", file=stream)
+          f"{jobs} at a time{where}" + (f" (or {2 * jobs} replays)" if any(s.replayed for s in d.specs) else "")
+          + f" -> {args.out}", file=stream)
+    print(replay_line(d), file=stream)
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler)  # `kill` stops it like Ctrl-C
     try:
         results, interrupted = execute(d.specs, jobs, start or start_process(d.scenario),
@@ -127,7 +148,10 @@ def write_outputs(args: SweepArgs, d: Design, results: Sequence[RunResult], inte
                           "method": "paired two-level bootstrap (seeds, then frames within each seed), "
                                     "expanded percentile intervals"},
             "runs": {"total": len(d.specs), "complete": sum(r.ok for r in results),
-                     "reused": sum(r.reused for r in results), "failed": failed},
+                     "reused": sum(r.reused for r in results), "failed": failed,
+                     "simulated": sum(not s.replayed for s in d.specs), "replayed": sum(s.replayed for s in d.specs),
+                     "replayed_points": sorted({s.point.pid for s in d.specs if s.replayed}),
+                     "no_replay": d.no_replay},
             "interrupted": interrupted}
     out = args.out
     paths = [out / "sweep.csv", out / "sweep.json", out / "sweep.md"]

@@ -84,7 +84,7 @@ def test_a_bad_key_or_value_exits_2_naming_it_before_anything_runs(tmp_path: Pat
 
 def test_cartesian_product_with_the_same_seeds_at_every_point(tmp_path: Path) -> None:
     d = prepare(SweepArgs(SCENARIO, ("comm.drop.p=0,0.5", "comm.latency_ms.mean=0,50,100"), "3-4", tmp_path,
-                          frames=2, overrides=("cavs.count=2",), methods="none,cobevt"))
+                          frames=2, overrides=("cavs.count=2",), methods="none,cobevt", replay=False))
     assert len(d.points) == 6 and len({p.pid for p in d.points}) == 6
     assert [p.texts for p in d.points][:3] == [("0", "0"), ("0", "50"), ("0", "100")]  # last key fastest
     assert len(d.specs) == 12 and len({s.out for s in d.specs}) == 12
@@ -123,6 +123,9 @@ class FakeJob:
                                              if code else "v2vsim: done\n")
         if status:
             spec.out.joinpath("metrics.json").write_text(json.dumps(_fake_metrics(spec) | {"status": status}))
+        if spec.records and status == "complete":  # what output.record_messages leaves
+            (spec.out / "messages").mkdir(exist_ok=True)
+            (spec.out / "messages" / "header.json").write_text(json.dumps({"status": "complete"}))
 
     def poll(self) -> int | None:
         return self.code
@@ -151,8 +154,10 @@ class FakeStarter:
 
 
 def _args(out: Path, *extra: str, grid: tuple[str, ...] = ("comm.drop.p=0,0.5",), seeds: str = "0-2",
-          bootstrap: int = 200) -> SweepArgs:
-    return SweepArgs(SCENARIO, grid, seeds, out, frames=2, overrides=("cavs.count=2", *extra), bootstrap=bootstrap)
+          bootstrap: int = 200, replay: bool = False) -> SweepArgs:
+    """Every run simulated unless `replay` (the replay tests below)."""
+    return SweepArgs(SCENARIO, grid, seeds, out, frames=2, overrides=("cavs.count=2", *extra), bootstrap=bootstrap,
+                     replay=replay)
 
 
 def _csv(path: Path) -> list[dict[str, str]]:
@@ -269,17 +274,80 @@ def test_jobs_caps_the_runs_at_a_time_and_no_grid_is_one_point(tmp_path: Path, m
     monkeypatch.setattr(runs_mod.time, "sleep", lambda s: None)
     monkeypatch.setattr(plots, "plot_all", lambda *a, **k: [])
     start = SlowStarter()
-    args = SweepArgs(SCENARIO, ("comm.drop.p=0,0.5,1",), "0-3", tmp_path / "a", frames=2, jobs=3)
+    args = SweepArgs(SCENARIO, ("comm.drop.p=0,0.5,1",), "0-3", tmp_path / "a", frames=2, jobs=3, replay=False)
     assert sweep(args, start=start, stream=io.StringIO()) == 0
     assert len(start.started) == 12 and start.most == 3
     start = SlowStarter()
-    args = SweepArgs(SCENARIO, (), "0-1", tmp_path / "b", frames=2, overrides=("comm.drop.p=0.5",))
+    args = SweepArgs(SCENARIO, (), "0-1", tmp_path / "b", frames=2, overrides=("comm.drop.p=0.5",), replay=False)
     assert sweep(args, start=start, stream=io.StringIO()) == 0 and start.most == 1
     assert (tmp_path / "b" / "runs" / "base" / "seed1" / "metrics.json").is_file()
     assert list(_csv(tmp_path / "b" / "sweep.csv")[0])[:2] == ["seed", "method"]
     md = (tmp_path / "b" / "sweep.md").read_text()
     assert "## Results" in md and "| (no grid) |" in md
     assert "lane IoU" not in md  # null in every run: no table
+
+
+# ---- record once, replay the rest ------------------------------------------------------------------------
+
+
+def test_points_that_differ_only_in_receiver_side_keys_replay_the_first_ones_recording(tmp_path: Path) -> None:
+    d = prepare(SweepArgs(SCENARIO, ("cavs.count=2,3", "comm.drop.p=0,0.5", "comm.latency_ms.mean=0,100"), "0-1",
+                          tmp_path, frames=2))
+    by = {(s.point.texts, s.seed): s for s in d.specs}
+    for count in ("2", "3"):  # sender-side: each count is simulated and recorded at each seed
+        for seed in (0, 1):
+            rec = by[((count, "0", "0"), seed)]
+            assert rec.records and not rec.replayed and "output.record_messages=true" in rec.request["overrides"]
+            assert rec.argv(d.scenario)[:3] == ["-m", "v2vsim.cli", "run"]
+            for texts in ((count, "0", "100"), (count, "0.5", "0"), (count, "0.5", "100")):
+                s = by[(texts, seed)]
+                assert s.recording == rec.out and not s.records and s.request["replay_of"] == str(rec.out)
+                argv = s.argv(d.scenario)
+                assert argv[:4] == ["-m", "v2vsim.cli", "evaluate", str(rec.out)]
+                assert f"seed={seed}" in argv and "comm.drop.p=" + texts[1] in argv and argv[-2:] == ["--frames", "2"]
+                assert "output.record_messages=true" not in s.request["overrides"]
+    assert sum(s.replayed for s in d.specs) == 12
+    # the methods and the output keys are not replayed across: a recording holds its own methods' kinds
+    d = prepare(_args(tmp_path, grid=("perception.methods=[none,cobevt],[none,late]",), seeds="0", replay=True))
+    assert not any(s.replayed or s.records for s in d.specs)
+    # the dask engine and the realtime clock simulate every run, saying why
+    assert prepare(_args(tmp_path, "transport.clock=realtime", replay=True)).no_replay.startswith("transport.clock")
+    assert prepare(_args(tmp_path)).no_replay == "--no-replay"
+
+
+def test_a_replay_waits_for_its_recording_and_fails_with_it(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import io
+
+    from v2vsim.study import plots
+
+    monkeypatch.setattr(runs_mod.time, "sleep", lambda s: None)
+    monkeypatch.setattr(plots, "plot_all", lambda *a, **k: [])
+    out = tmp_path / "sweep"
+    start = SlowStarter()
+    start.fail = {("0", 1)}  # seed 1's recording run fails
+    log = io.StringIO()
+    assert sweep(SweepArgs(SCENARIO, ("comm.drop.p=0,0.5,1",), "0-2", out, frames=2, jobs=3), start=start,
+                 stream=log) == 1
+    text = log.getvalue()
+    assert "3 runs simulated, 6 replayed (v2vsim evaluate) from the recordings of point(s) comm.drop.p=0" in text
+    # every replay started after its seed's recording run had finished; seed 1's were never started
+    order = start.started
+    assert sorted(order) == [("0", 0), ("0", 1), ("0", 2), ("0.5", 0), ("0.5", 2), ("1", 0), ("1", 2)]
+    for p in ("0.5", "1"):
+        for seed in (0, 2):
+            assert order.index((p, seed)) > order.index(("0", seed))
+    assert f"[comm.drop.p=0.5] seed 1 failed (not replayed: the run it replays ({out}/runs/comm.drop.p=0/seed1)" in text
+    doc = json.loads((out / "sweep.json").read_text())
+    assert doc["runs"]["simulated"] == 3 and doc["runs"]["replayed"] == 6 and len(doc["runs"]["failed"]) == 3
+    assert doc["runs"]["replayed_points"] == ["comm.drop.p=0.5", "comm.drop.p=1"]
+    assert "3 runs simulated, 6 replayed with `v2vsim evaluate`" in (out / "sweep.md").read_text()
+
+    # resumed: the recording run again, then its replays; a recording run whose recording is gone reruns too
+    (out / "runs" / "comm.drop.p=0" / "seed2" / "messages" / "header.json").unlink()
+    start = FakeStarter()
+    assert sweep(SweepArgs(SCENARIO, ("comm.drop.p=0,0.5,1",), "0-2", out, frames=2), start=start,
+                 stream=io.StringIO()) == 0
+    assert start.started == [("0", 1), ("0", 2), ("0.5", 1), ("1", 1)]
 
 
 # ---- statistics ------------------------------------------------------------------------------------------
@@ -417,6 +485,21 @@ def test_real_two_point_sweep_writes_the_contract_csv_and_plots(tmp_path: Path) 
     for name in ("sweep.json", "sweep.md", "sweep_comm.drop.p_iou_vehicle.png", "sweep_comm.drop.p_ap50.png",
                  "sweep_comm.drop.p_ap70.png"):
         assert (out / name).stat().st_size > 0, name
+
+    # drop.p=0.5 was replayed from drop.p=0's recording; simulated instead, it scores the same, bit for bit
+    assert "1 runs simulated, 1 replayed (v2vsim evaluate) from the recordings of point(s) comm.drop.p=0" in r.stderr
+    assert (out / "runs" / "comm.drop.p=0" / "seed0" / "messages" / "header.json").is_file()
+    assert "evaluate" in (run / "sweep-run.log").read_text() and not (run / "messages").exists()
+    live = tmp_path / "live"
+    r = subprocess.run([sys.executable, "-m", "v2vsim.cli", "sweep", str(SCENARIO), "--grid", "comm.drop.p=0.5",
+                        "--seeds", "0-0", "--frames", "3", "--set", "cavs.count=2", "--methods", "none,cobevt",
+                        "--bootstrap", "200", "--no-replay", "--out", str(live)], capture_output=True, text=True,
+                       cwd=REPO, timeout=240)
+    assert r.returncode == 0, r.stderr
+    assert "every run is simulated (--no-replay)" in r.stderr
+    timing = {"fusion_ms"}
+    assert [{k: v for k, v in x.items() if k not in timing} for x in _csv(live / "sweep.csv")] == [
+        {k: v for k, v in x.items() if k not in timing} for x in rows[2:]]
 
 
 def test_the_dask_engine_runs_a_sweep_on_a_local_cluster_with_the_same_outputs(tmp_path: Path) -> None:
