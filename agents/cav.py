@@ -42,6 +42,7 @@ from v2vsim.perception.build import (
 )
 from v2vsim.perception.encode import body_frame_points, late_outputs, pooled_confidence
 from v2vsim.perception.encode import encode as encode_features
+from v2vsim.perception.precision import resolve as resolve_precision
 from v2vsim.recording.scan import encode_scan, world_points
 from v2vsim.sensors.camera import render_cameras
 from v2vsim.sensors.scene import Scene, build_map_assets, build_scene
@@ -58,6 +59,7 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
     methods = sc.perception.methods
     key = run_signer(args)
     encoder = build_agent_encoder(sc)
+    precision = resolve_precision(sc.perception.precision)
     compressor, ratio = build_compressor(sc, encoder.out_channels), wire_ratio(sc)
     late = "late" in methods
     # comm.share topk: the CAV ranks its cells by its own single-agent confidence; an ego keeps its whole map
@@ -133,13 +135,13 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
             with timer.stage("comm"):
                 bus.put("vis", json.dumps({"frame": world.frame, "ids": sorted(seen_ids)}).encode())
             with timer.stage("encoding"):
-                feats = encode_features(encoder, sf, sc)
+                feats = encode_features(encoder, sf, sc, precision)
             stamp = {"run_id": args.run_id, "sender_id": me, "frame": world.frame, "capture_time": world.time,
                      "sender_pose": actor.pose.as_tuple(), "compression": sc.comm.compression}
             confidence = maps = boxes = None
             if single is not None:
                 with timer.stage("decoding"):  # its own outputs: decoder + heads
-                    maps, boxes = late_outputs(single, feats, boxes=late)
+                    maps, boxes = late_outputs(single, feats, boxes=late, precision=precision)
                     if share < 1.0:
                         confidence = pooled_confidence(maps[0], feats.shape[-1])
             with timer.stage("comm"):

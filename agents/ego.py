@@ -58,6 +58,7 @@ from v2vsim.perception.build import (
     wire_ratio,
 )
 from v2vsim.perception.extrapolate import extrapolate_features
+from v2vsim.perception.precision import resolve as resolve_precision
 from v2vsim.recording.messages import MessageTape
 from v2vsim.recording.recorder import Recorder
 from v2vsim.recording.scan import max_scan_bytes
@@ -90,6 +91,7 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None) -> int:
     kinds = ["features"] + (["points"] if "early" in methods and lidar else []) + (
         ["outputs"] if "late" in methods else [])
     encoder = build_agent_encoder(sc)
+    precision = resolve_precision(sc.perception.precision)
     models = build_method_models(sc, encoder, runnable_methods(sc))
     # comm.compensation: each intermediate method whose zoo ships a trained extrapolation (never a random one)
     extrapolations = {m: e for m in models if sc.comm.compensation and (e := build_extrapolation(sc, m)) is not None}
@@ -216,7 +218,7 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None) -> int:
                 gt = bev_ground_truth(world, me, sc.bev, visible, assets=assets)
                 boxes_gt, ids = gt_boxes(world, me, sc.bev)
                 boxes_gt = boxes_gt[[i in visible for i in ids]] if len(ids) else boxes_gt
-            preds = predict_all(models, inp, sc.bev.cells)
+            preds = predict_all(models, inp, sc.bev.cells, precision)
             for m, pred in preds.items():
                 timer.add(f"fusion.{m}", pred.ms - pred.decode_ms)
                 timer.add(f"decoding.{m}", pred.decode_ms)

@@ -228,6 +228,9 @@ class PerceptionConfig:
     # default: the built-in methods; a fusion plugin (models.registry) runs when named here or in --methods
     methods: tuple[str, ...] = _f(BUILTIN_METHODS, _Methods(), lambda v: len(v) > 0 and all(m in METHODS for m in v))
     weights: str = _f("auto", "'auto', 'none' or a checkpoint path")
+    # the models' forward passes (v2vsim.perception.precision): auto = bf16 autocast where the CPU has native
+    # bfloat16 (AMX, AVX-512 BF16), fp32 elsewhere; metrics.json says which ran
+    precision: Literal["auto", "fp32", "bf16"] = "fp32"
 
 
 @dataclass(frozen=True)

@@ -15,6 +15,7 @@ from torch import nn
 from models.nms import rotated_iou_matrix
 from v2vsim.evaluation.metrics import MethodScore
 from v2vsim.perception.fuse import FusionInputs, Prediction, predict
+from v2vsim.perception.precision import Precision
 
 
 def fuse_and_score(models: dict[str, nn.Module], inp: FusionInputs, cells: int, gt: dict[str, np.ndarray],
@@ -29,11 +30,12 @@ def fuse_and_score(models: dict[str, nn.Module], inp: FusionInputs, cells: int, 
     return preds
 
 
-def predict_all(models: dict[str, nn.Module], inp: FusionInputs, cells: int) -> dict[str, Prediction]:
+def predict_all(models: dict[str, nn.Module], inp: FusionInputs, cells: int,
+                precision: Precision = "fp32") -> dict[str, Prediction]:
     """Every method's prediction for one frame (methods without input are left out)."""
     preds = {}
     for m, model in models.items():
-        pred = predict(m, model, inp, cells)
+        pred = predict(m, model, inp, cells, precision)
         if pred is not None:
             preds[m] = pred
     return preds

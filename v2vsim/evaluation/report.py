@@ -15,6 +15,7 @@ from v2vsim.comm.wire_spec import message_kind
 from v2vsim.config import ChannelConfig, Scenario
 from v2vsim.evaluation.block_bootstrap import LEVEL, REPLICATES, paired_difference
 from v2vsim.evaluation.metrics import MethodScore, neighbour_shares, paired_counts
+from v2vsim.perception.precision import resolve as resolve_precision
 
 # CoBEVT paper figures (DESIGN.md "Reference figures"): OPV2V camera IoU vehicle/road/lane, LiDAR AP@0.7.
 PAPER_CAMERA = {"none": (37.7, 57.8, 43.7), "fcooper": (52.5, 60.4, 46.5), "attfuse": (51.9, 60.5, 46.2),
@@ -76,6 +77,8 @@ def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: Comm
         "checkpoints": {m: summary.checkpoints.get(m) for m in summary.methods},
         "compensation": {m: summary.compensation.get(m, "none") for m in summary.methods},
         "clock": sc.transport.clock,
+        # the models' forward passes on this host (v2vsim.perception.precision); remote CAVs resolve 'auto' on theirs
+        "precision": {"asked": sc.perception.precision, "used": resolve_precision(sc.perception.precision)},
         "neighbours_in_range": neighbour_shares(summary.neighbours, sc.cavs.count),
         "ap_sort": sc.evaluation.ap_sort,
         "pipeline": sc.transport.pipeline,

@@ -9,6 +9,7 @@ from torch import Tensor, nn
 
 from models.heads import decode_detections, segmentation_probabilities
 from v2vsim.config import Scenario
+from v2vsim.perception.precision import Precision, autocast
 from v2vsim.sensors.sensing import SensorFrame
 
 
@@ -31,24 +32,34 @@ def body_frame_points(sf: SensorFrame, sc: Scenario) -> np.ndarray:
 
 
 @torch.no_grad()
-def encode(encoder: nn.Module, sf: SensorFrame, sc: Scenario) -> np.ndarray:
+def encode(encoder: nn.Module, sf: SensorFrame, sc: Scenario, precision: Precision = "fp32") -> np.ndarray:
     """[C, F, F] float32 BEV features of one CAV in its own frame."""
     if sc.perception.modality == "lidar":
-        return encode_points(encoder, body_frame_points(sf, sc))
-    return encoder(*encoder_inputs(sf, sc))[0].float().numpy()
+        return encode_points(encoder, body_frame_points(sf, sc), precision)
+    with autocast(precision):
+        return encoder(*encoder_inputs(sf, sc))[0].float().numpy()
 
 
 @torch.no_grad()
-def encode_points(encoder: nn.Module, points: np.ndarray) -> np.ndarray:
+def encode_points(encoder: nn.Module, points: np.ndarray, precision: Precision = "fp32") -> np.ndarray:
     """A LiDAR encoder on one body-frame cloud [P, 4] -> [C, F, F] float32 features."""
-    return encoder([torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32))])[0].float().numpy()
+    with autocast(precision):
+        return encoder([torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32))])[0].float().numpy()
+
+
+def heads_float(model: nn.Module, fused: Tensor, precision: Precision) -> dict[str, Tensor]:
+    """The heads on a fused map [B, C, F, F], every output back in float32."""
+    with autocast(precision):
+        out = model.heads(fused)
+    return {k: v.float() for k, v in out.items()}
 
 
 @torch.no_grad()
-def late_outputs(model: nn.Module, features: np.ndarray, boxes: bool = True) -> tuple[np.ndarray, np.ndarray]:
+def late_outputs(model: nn.Module, features: np.ndarray, boxes: bool = True,
+                 precision: Precision = "fp32") -> tuple[np.ndarray, np.ndarray]:
     """A CAV's own decoded outputs for late fusion: probabilities [3, S, S] (vehicle, road, lane) and
     boxes [K, 6] (x, y, l, w, yaw, score) in its body frame (none decoded with `boxes=False`: [0, 6])."""
-    out = model.heads(torch.from_numpy(np.ascontiguousarray(features, dtype=np.float32))[None])
+    out = heads_float(model, torch.from_numpy(np.ascontiguousarray(features, dtype=np.float32))[None], precision)
     probs = segmentation_probabilities(out["dynamic"], out["static"])
     maps = np.stack([probs[k][0].numpy() for k in ("vehicle", "road", "lane")])
     found = np.zeros((0, 6), np.float32)
@@ -63,7 +74,7 @@ def pooled_confidence(p_vehicle: np.ndarray, cells: int) -> np.ndarray:
     return torch.nn.functional.adaptive_max_pool2d(torch.from_numpy(p_vehicle)[None, None], cells)[0, 0].numpy()
 
 
-def vehicle_confidence(model: nn.Module, features: np.ndarray) -> np.ndarray:
+def vehicle_confidence(model: nn.Module, features: np.ndarray, precision: Precision = "fp32") -> np.ndarray:
     """The single-agent heads' vehicle probability on features [C, F, F], pooled to [F, F] (pooled_confidence)."""
-    maps, _ = late_outputs(model, features, boxes=False)
+    maps, _ = late_outputs(model, features, boxes=False, precision=precision)
     return pooled_confidence(maps[0], features.shape[-1])

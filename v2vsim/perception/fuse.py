@@ -14,6 +14,8 @@ from models.fusion.early import merge_points_to_ego
 from models.fusion.late import late_fuse_boxes, late_fuse_probabilities
 from models.heads import decode_detections, resize_logits, segmentation_probabilities
 from models.registry import is_intermediate
+from v2vsim.perception.encode import heads_float
+from v2vsim.perception.precision import Precision, autocast
 
 
 @dataclass
@@ -60,9 +62,10 @@ def _poses(inp: FusionInputs, names: list[str], kind: str) -> Tensor:
 
 
 @torch.no_grad()
-def predict(method: str, model: nn.Module, inp: FusionInputs, cells: int) -> Prediction | None:
+def predict(method: str, model: nn.Module, inp: FusionInputs, cells: int,
+            precision: Precision = "fp32") -> Prediction | None:
     """Fuse and decode what reached the ego with one method; None when the method has no input
-    (e.g. the ego's own message is missing)."""
+    (e.g. the ego's own message is missing). `precision`: the models' forward passes (v2vsim.perception.precision)."""
     ego = inp.senders[0]
     t0 = time.perf_counter()
     if method == "late":
@@ -86,7 +89,8 @@ def predict(method: str, model: nn.Module, inp: FusionInputs, cells: int) -> Pre
         names = [s for s in inp.senders if s in inp.points]
         clouds = [torch.from_numpy(inp.points[s]) for s in names]
         merged = merge_points_to_ego(clouds, _poses(inp, names, "points"))
-        fused = model.encoder([merged])
+        with autocast(precision):
+            fused = model.encoder([merged])
     else:
         if ego not in inp.features:
             return None
@@ -96,9 +100,10 @@ def predict(method: str, model: nn.Module, inp: FusionInputs, cells: int) -> Pre
             table = {**inp.features, **inp.extrapolated.get(method, {})}
             names, feats = _stack(inp, table)  # [L, C, F, F]
             valid = torch.ones(1, len(names), dtype=torch.bool)
-            fused = model.fuse(feats[None], _poses(inp, names, "features")[None], valid)
+            with autocast(precision):
+                fused = model.fuse(feats[None], _poses(inp, names, "features")[None], valid)
     t_fused = time.perf_counter()
-    out = model.heads(fused)
+    out = heads_float(model, fused, precision)
     dyn, stat = resize_logits(out["dynamic"], cells), resize_logits(out["static"], cells)
     probs = {k: v[0].numpy() for k, v in segmentation_probabilities(dyn, stat).items()}
     boxes = None
