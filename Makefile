@@ -13,7 +13,7 @@ demo: install
 
 test: install
 	$(PYTHON) -m ruff check .
-	$(PYTHON) -m pytest
+	$(PYTHON) -m pytest -n 2  # pytest-xdist: two workers (a test waits on its processes much of the time)
 
 bench: install
 	v2vsim bench sensors

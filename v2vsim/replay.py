@@ -10,9 +10,10 @@ CAVs sent, and is a ConfigError naming it (exit 2).
 from __future__ import annotations
 
 import dataclasses
+import sys
 from pathlib import Path
 
-from v2vsim.config import ConfigError, check_output_dir, load_scenario
+from v2vsim.config import ConfigError, Scenario, check_output_dir, load_scenario
 
 # What acts only at the receiver: a key equal to one of these, or under one (dotted prefix).
 RECEIVER_SIDE = (
@@ -47,10 +48,11 @@ def evaluate(recording: Path, overrides: list[str], out: Path, frames: int | Non
     sc = load_scenario(source, [*h["scenario"]["overrides"], *overrides])
     sc = dataclasses.replace(sc, output=dataclasses.replace(sc.output, record_messages=False))
     before, now = h["scenario"]["resolved"], resolved_keys(sc)
+    defaults = resolved_keys(Scenario())  # a key added since the recording was made: it ran with the default
     for key in sorted(set(before) | set(now)):
         if key in ("output.record_messages",) or receiver_side(key):
             continue
-        if before.get(key) != now.get(key):
+        if before.get(key, defaults.get(key)) != now.get(key):
             raise ConfigError(f"{key}: {now.get(key)!r} differs from the recording's {before.get(key)!r}; it is a "
                               "sender-side key (it changes what the CAVs sent): record a new run for it")
     lidar = sc.perception.modality == "lidar"
@@ -63,6 +65,16 @@ def evaluate(recording: Path, overrides: list[str], out: Path, frames: int | Non
         raise ConfigError("output.rerun: true needs the CAVs' scans, which the recording lacks (it was recorded "
                           "with output.rerun false); use --set output.rerun=false")
     n = int(h["frames_requested"])
+    if not rec.complete:  # killed mid-way: what it recorded, up to the last whole frame
+        try:
+            n = min(n, sum(1 for _ in rec.frames()))
+        except (OSError, ValueError) as e:
+            raise ConfigError(str(e)) from None
+        if n == 0:
+            raise ConfigError(f"{recording}: the recorded run ended before its first frame was recorded (status "
+                              f"{h.get('status')!r}): nothing to replay")
+        print(f"v2vsim evaluate: {recording}: the recorded run never finished (status {h.get('status')!r}: killed?); "
+              f"replaying the {n} frame(s) it recorded whole", file=sys.stderr)
     if frames is not None:
         if not 1 <= frames <= n:
             raise ConfigError(f"--frames {frames}: the recording has {n} frames; allowed: 1..{n}")

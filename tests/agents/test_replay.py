@@ -47,41 +47,58 @@ def _replay(rec: Path, out: Path, *extra: str) -> dict:
     return json.loads((out / "metrics.json").read_text())
 
 
-@pytest.mark.parametrize("extra", [[], ["--set", "comm.medium=shared", "--set", "comm.channel.model=tr37885",
-                                        "--set", "comm.compensation=true"]], ids=["per_link", "shared_tr37885"])
-def test_evaluate_over_a_recording_is_the_live_run_bit_for_bit(tmp_path: Path, extra: list[str]) -> None:
-    live = _record(tmp_path / "live", *extra)
+@pytest.fixture(scope="module")
+def per_link(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
+    """One recorded lossy run on per-link channels, shared by the tests below (a run costs ~30 s)."""
+    out = tmp_path_factory.mktemp("per_link") / "live"
+    return out, _record(out)
+
+
+def _same_as_live(rec: Path, live: dict, out: Path) -> None:
     assert live["status"] == "complete" and live["comm"]["delivered"] > 0 and live["comm"]["dropped"] > 0
-    rec = Recording(tmp_path / "live")
-    assert rec.header["format"] == FORMAT and rec.header["version"] == VERSION and rec.header["frames"] == 6
-    assert rec.header["kinds"] == ["features", "outputs"] and rec.header["status"] == "complete"
-    frames = list(rec.frames())
+    recording = Recording(rec)
+    h = recording.header
+    assert h["format"] == FORMAT and h["version"] == VERSION and h["frames"] == 6 and h["status"] == "complete"
+    assert h["kinds"] == ["features", "outputs"]
+    frames = list(recording.frames())
     assert [k for k, _ in frames] == list(range(6))
     assert all(len(f.raw["features"]) == 3 and len(f.raw["outputs"]) == 3 for _, f in frames)  # every live CAV
-    replay = _replay(tmp_path / "live", tmp_path / "replay")
+    replay = _replay(rec, out)
     assert _scores(replay) == _scores(live)
-    assert (tmp_path / "replay" / "report.md").exists()
+    assert (out / "report.md").exists()
 
 
-def test_evaluate_changes_receiver_side_keys_and_refuses_sender_side_ones(tmp_path: Path) -> None:
-    live = _record(tmp_path / "live")
+def test_evaluate_over_a_recording_is_the_live_run_bit_for_bit(per_link: tuple[Path, dict], tmp_path: Path) -> None:
+    _same_as_live(*per_link, tmp_path / "replay")
+
+
+def test_the_same_on_a_shared_tr37885_medium_with_compensation(tmp_path: Path) -> None:
+    live = _record(tmp_path / "live", "--set", "comm.medium=shared", "--set", "comm.channel.model=tr37885",
+                   "--set", "comm.compensation=true")
+    _same_as_live(tmp_path / "live", live, tmp_path / "replay")
+
+
+def test_evaluate_changes_receiver_side_keys_and_refuses_sender_side_ones(per_link: tuple[Path, dict],
+                                                                         tmp_path: Path) -> None:
+    rec, live = per_link
     # a receiver-side change: a clean channel, fewer methods, no re-simulation
-    clean = _replay(tmp_path / "live", tmp_path / "clean", "--methods", "none,cobevt", "--set", "comm.drop.p=0")
+    clean = _replay(rec, tmp_path / "clean", "--methods", "none,cobevt", "--set", "comm.drop.p=0")
     assert set(clean["methods"]) == {"none", "cobevt"} and clean["comm"]["dropped"] == 0
     assert clean["comm"]["delivered"] > live["comm"]["delivered"]
     assert clean["methods"]["none"] == {**live["methods"]["none"], "fusion_ms": clean["methods"]["none"]["fusion_ms"]}
     for args, key in ((["--set", "cavs.count=2"], "cavs.count"), (["--set", "seed=7"], "seed"),
                       (["--set", "perception.preset=paper"], "perception.preset"),
+                      (["--set", "perception.precision=bf16"], "perception.precision"),
                       (["--set", "comm.channel_compression=8"], "comm.channel_compression")):
-        r = _cli("evaluate", str(tmp_path / "live"), "--out", str(tmp_path / "bad"), *args)
+        r = _cli("evaluate", str(rec), "--out", str(tmp_path / "bad"), *args)
         assert r.returncode == 2, r.stderr
         lines = r.stderr.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith(f"v2vsim: error: {key}:") and "sender-side" in lines[0]
-    r = _cli("evaluate", str(tmp_path / "live"), "--out", str(tmp_path / "bad"), "--methods", "none,early")
+    r = _cli("evaluate", str(rec), "--out", str(tmp_path / "bad"), "--methods", "none,early")
     assert r.returncode == 2 and "perception.methods" in r.stderr and "points" in r.stderr
     r = _cli("evaluate", str(tmp_path / "nothing"), "--out", str(tmp_path / "bad"))
     assert r.returncode == 2 and "no recording" in r.stderr
-    r = _cli("evaluate", str(tmp_path / "live"), "--out", str(tmp_path / "live"))
+    r = _cli("evaluate", str(rec), "--out", str(rec))
     assert r.returncode == 2 and "overwritten" in r.stderr
 
 

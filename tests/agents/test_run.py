@@ -460,20 +460,31 @@ def test_a_run_with_comm_share_topk_sends_sparse_features(tmp_path: Path) -> Non
     assert m["methods"]["cobevt"]["iou_vehicle"] is not None
 
 
+def _evaluate(rec: Path, out: Path, *extra: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "v2vsim.cli", "evaluate", str(rec), "--out", str(out), *extra],
+                            stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, cwd=REPO)
+
+
 def test_compensation_with_zero_latency_changes_nothing(tmp_path: Path) -> None:
     """With no latency every message is fused aligned (age 0), so compensated late fusion and CoBEVT (the zoo's
     learned extrapolation) equal the uncompensated ones exactly; with the shipped 27 Mbps link late fusion's
-    outputs come a frame old and get moved, while feature messages still make the 50 ms deadline."""
-    args = ["--set", "comm.range_m=300", "--methods", "none,late,cobevt", "--set", "output.rerun=false"]
-    ideal = ["--frames", "8", "--set", "comm.bandwidth_mbps=null"]
+    outputs come a frame old and get moved, while feature messages still make the 50 ms deadline. Compensation
+    and the link act at the receiver only: one recorded run on the shipped link, the other three are replays of it
+    (bit for bit the live runs they stand for, tests/agents/test_replay.py)."""
     # 16 frames on the shipped link: in the first few the neighbours detect few vehicles that move (a box moves
     # only when matched to the sender's previous one at >= 0.5 m/s), so compensation may not change a thing yet
-    shipped = ["--frames", "16"]
-    runs = {name: Run(*args, *extra, "--out", str(tmp_path / name)) for name, extra in [
+    run = Run("--frames", "16", "--set", "comm.range_m=300", "--methods", "none,late,cobevt", "--set",
+              "output.rerun=false", "--set", "output.record_messages=true", "--out", str(tmp_path / "late_off"))
+    assert run.finish() == 0, "".join(run.log)
+    rec = tmp_path / "late_off"
+    ideal = ["--frames", "8", "--set", "comm.bandwidth_mbps=null"]
+    replays = {name: _evaluate(rec, tmp_path / name, *extra) for name, extra in [
         ("off", ideal), ("on", [*ideal, "--set", "comm.compensation=true"]),
-        ("late_off", shipped), ("late_on", [*shipped, "--set", "comm.compensation=true"])]}
-    assert all(r.finish() == 0 for r in runs.values()), "".join(x for r in runs.values() for x in r.log)
-    m = {name: _metrics(tmp_path / name) for name in runs}
+        ("late_on", ["--set", "comm.compensation=true"])]}
+    for name, proc in replays.items():
+        _, err = proc.communicate(timeout=300)
+        assert proc.returncode == 0, (name, err[-3000:])
+    m = {name: _metrics(tmp_path / name) for name in ("off", "on", "late_off", "late_on")}
     assert m["on"]["comm"]["by_kind"]["outputs"]["age_ms"]["buckets"] == {"0": m["on"]["comm"]["by_kind"]["outputs"]
                                                                           ["age_ms"]["fused"]}
     assert _scores(m["on"]) == _scores(m["off"])

@@ -6,7 +6,9 @@ Format "v2vsim.messages" version 1, a folder `messages/` beside the ego's metric
   "frames" (frames recorded), "chunk_frames", "chunks" (file names, in frame order), "kinds" (the V2V kinds the ego
   collected: features, points, outputs), "side" (side kinds: vis, scan, own), "scenario": {"source", "overrides",
   "resolved" (every scenario key, dotted, as JSON values: what `evaluate` compares sender-side keys against)},
-  "lost_agents", "control_rejections" ([[kind, reason, n]]), "status"}. Written when the run ends.
+  "lost_agents", "control_rejections" ([[kind, reason, n]]), "status"}. Written when recording starts and
+  again at every new chunk (status "running"), then when the run ends; a run killed mid-way (SIGKILL, power)
+  leaves status "running" and its chunks up to the last whole frame, which `evaluate` replays, saying so.
 - scenario.yaml: the scenario file the run read (a copy; evaluate reads it where the original is gone).
 - static.bin: the static map bytes the driver served (v2vsim.world.serialize).
 - chunk_NNNNNN.bin: frames [N*chunk_frames, (N+1)*chunk_frames): b"V2VM" + u16 version, then one block per
@@ -85,7 +87,14 @@ class MessageTape:
         self._error: Exception | None = None
         self._queue: queue.Queue = queue.Queue(maxsize=8)
         self._thread = threading.Thread(target=self._writer, name="message-tape", daemon=True)
+        self._write_header()
         self._thread.start()
+
+    def _write_header(self) -> None:
+        """header.json, replaced atomically: a reader never sees half of it, and a killed run leaves one."""
+        tmp = self.folder / "header.json.tmp"
+        tmp.write_text(json.dumps(dict(self.header), indent=1) + "\n")
+        tmp.replace(self.folder / "header.json")
 
     def _record(self, kind: str, sender: str, data: bytes) -> None:
         k, s = kind.encode("ascii"), sender.encode("utf-8")
@@ -111,7 +120,8 @@ class MessageTape:
                     if self._file.tell() == 0:
                         self._file.write(MAGIC + struct.pack("<H", VERSION))
                     if name not in self.header["chunks"]:
-                        self.header["chunks"].append(name)
+                        self.header["chunks"] = [*self.header["chunks"], name]
+                        self._write_header()
                     self._chunk = chunk
                 self._file.write(_BLOCK.pack(frame, len(block)) + block)
             except Exception as e:  # noqa: BLE001 - said in close(): a run never dies of its recording
@@ -148,7 +158,7 @@ class MessageTape:
             self.header["error"] = str(self._error)
         self.header.update(status=status, lost_agents=dict(lost),
                            control_rejections=[[k, r, n] for (k, r), n in sorted(control.items())])
-        (self.folder / "header.json").write_text(json.dumps(self.header, indent=1) + "\n")
+        self._write_header()
 
 
 @dataclasses.dataclass
@@ -178,19 +188,32 @@ class Recording:
         self.folder = folder
         self.static = (folder / "static.bin").read_bytes()
 
-    def frames(self) -> Iterator[tuple[int, RecordedFrame]]:
-        for name in self.header["chunks"]:
-            yield from self._chunk(self.folder / name)
+    @property
+    def complete(self) -> bool:
+        return self.header.get("status") == "complete"
 
-    def _chunk(self, path: Path) -> Iterator[tuple[int, RecordedFrame]]:
+    def frames(self) -> Iterator[tuple[int, RecordedFrame]]:
+        """Every recorded frame in order. A run that never ended (status "running": killed) yields its frames up
+        to the last whole one: its chunk files on disk, the last one possibly cut mid-block."""
+        names = self.header["chunks"] if self.complete else sorted(p.name for p in self.folder.glob("chunk_*.bin"))
+        for name in names:
+            yield from self._chunk(self.folder / name, cut_ok=not self.complete)
+
+    def _chunk(self, path: Path, cut_ok: bool = False) -> Iterator[tuple[int, RecordedFrame]]:
         data = path.read_bytes()
         if data[:4] != MAGIC or len(data) < 6 or struct.unpack_from("<H", data, 4)[0] != VERSION:
+            if cut_ok and len(data) < 6:
+                return
             raise ValueError(f"{path}: not a {FORMAT} version {VERSION} chunk")
         at = 6
         while at < len(data):
+            if at + _BLOCK.size > len(data) and cut_ok:
+                return
             frame, n = _BLOCK.unpack_from(data, at)
             at += _BLOCK.size
             if at + n > len(data):
+                if cut_ok:
+                    return
                 raise ValueError(f"{path}: truncated block of frame {frame}")
             yield frame, _frame(zlib.decompress(data[at:at + n]), path, frame)
             at += n

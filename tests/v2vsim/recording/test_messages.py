@@ -66,6 +66,30 @@ def test_what_is_not_a_recording_is_one_clear_error(tmp_path: Path) -> None:
         list(Recording(tmp_path).frames())
 
 
+def test_a_killed_run_leaves_a_header_and_its_whole_frames(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """No close(): the process died. header.json says "running" and lists the chunks it had started; the frames up
+    to the last whole one read back, the cut block after them is dropped."""
+    monkeypatch.setattr(messages, "CHUNK_FRAMES", 4)
+    sc = load_scenario("intersection", ["cavs.count=2"])
+    folder = tmp_path / "messages"
+    tape = MessageTape(folder, sc, run_id="r1", ego="cav0", cavs=["cav0", "cav1"], frames=20, kinds=["features"],
+                       side=[], static=b"static-map")
+    assert json.loads((folder / "header.json").read_text())["status"] == "running"  # written at the start
+    for k in range(7):
+        tape.world(k, b"world-%d" % k)
+        tape.collected(k, {"features": [("cav1", bytes([k]) * 500)]}, Counter())
+    tape._submit()
+    tape._queue.put(None)  # let the writer finish what it has, as the OS would have flushed it; then "die"
+    tape._thread.join()
+    tape._file.close()
+    chunk = folder / "chunk_000001.bin"
+    chunk.write_bytes(chunk.read_bytes()[:-7])  # frame 6 cut mid-block
+    rec = Recording(tmp_path)
+    assert rec.header["status"] == "running" and not rec.complete
+    assert [k for k, _ in rec.frames()] == [0, 1, 2, 3, 4, 5]
+    assert not list(folder.glob("*.tmp"))
+
+
 def test_resolved_keys_are_dotted_json_values() -> None:
     keys = resolved_keys(load_scenario("intersection", ["comm.drop.p=0.25"]))
     assert keys["comm.drop.p"] == 0.25 and "comm.latency_ms.jitter" in keys
