@@ -126,6 +126,11 @@ def sweep(args: SweepArgs, start: Callable[[RunSpec], Job] | None = None, stream
     failed = [r for r in results if not r.ok]
     print(f"v2vsim sweep: {'interrupted' if interrupted else 'done'}: {sum(r.ok for r in results)} of "
           f"{len(d.specs)} runs complete, {len(failed)} failed; {paths[0]}", file=stream)
+    kept = [s.out / "messages" for s in d.specs if s.records and (s.out / "messages").is_dir()]
+    if kept:
+        size = sum(f.stat().st_size for m in kept for f in m.iterdir() if f.is_file())
+        print(f"v2vsim sweep: {len(kept)} recording(s) kept for later `v2vsim evaluate` ({size / 1e6:.0f} MB, "
+              f"{args.out}/runs/*/seed*/messages); delete them when the study is done", file=stream)
     if interrupted:
         return EXIT_INTERRUPTED
     return EXIT_FAILED if failed else 0
