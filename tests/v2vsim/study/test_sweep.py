@@ -490,7 +490,8 @@ def test_real_two_point_sweep_writes_the_contract_csv_and_plots(tmp_path: Path) 
     assert "1 runs simulated, 1 replayed (v2vsim evaluate) from the recordings of point(s) comm.drop.p=0" in r.stderr
     assert (out / "runs" / "comm.drop.p=0" / "seed0" / "messages" / "header.json").is_file()
     assert "frame 3/3" in (run / "sweep-run.log").read_text() and not (run / "messages").exists()
-    assert json.loads((run / "sweep_run.json").read_text())["replay_of"] == str(out / "runs" / "comm.drop.p=0" / "seed0")
+    recorded = out / "runs" / "comm.drop.p=0" / "seed0"
+    assert json.loads((run / "sweep_run.json").read_text())["replay_of"] == str(recorded)
     live = tmp_path / "live"
     r = subprocess.run([sys.executable, "-m", "v2vsim.cli", "sweep", str(SCENARIO), "--grid", "comm.drop.p=0.5",
                         "--seeds", "0-0", "--frames", "3", "--set", "cavs.count=2", "--methods", "none,cobevt",
