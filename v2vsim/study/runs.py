@@ -145,13 +145,13 @@ RECORD = "output.record_messages=true"
 
 def replay_groups(axes: Sequence[Axis], pts: Sequence[Point]) -> list[int]:
     """For each point, the index of the point whose recording it can replay (itself when it must be run):
-    the first point with the same values on every axis that is not receiver-side. The methods and the output
-    keys count as sender-side here: a recording holds the kinds its own methods took, and its scans only
-    with output.rerun on."""
+    the first point with the same values on every axis that is not receiver-side. The methods, the output keys
+    and duration_s count as sender-side here: a recording holds the kinds its own methods took, its scans only
+    with output.rerun on, and the frames its own duration gave."""
     from v2vsim.replay import receiver_side
 
     def sender_side(key: str) -> bool:
-        return not receiver_side(key) or key.startswith(("perception.methods", "output"))
+        return not receiver_side(key) or key.startswith(("perception.methods", "output", "duration_s"))
 
     first: dict[tuple[str, ...], int] = {}
     out = []

@@ -310,6 +310,8 @@ def test_points_that_differ_only_in_receiver_side_keys_replay_the_first_ones_rec
     # the methods and the output keys are not replayed across: a recording holds its own methods' kinds
     d = prepare(_args(tmp_path, grid=("perception.methods=[none,cobevt],[none,late]",), seeds="0", replay=True))
     assert not any(s.replayed or s.records for s in d.specs)
+    d = prepare(_args(tmp_path, grid=("duration_s=1,2",), seeds="0", replay=True))  # another number of frames
+    assert not any(s.replayed or s.records for s in d.specs)
     # the dask engine and the realtime clock simulate every run, saying why
     assert prepare(_args(tmp_path, "transport.clock=realtime", replay=True)).no_replay.startswith("transport.clock")
     assert prepare(_args(tmp_path)).no_replay == "--no-replay"
