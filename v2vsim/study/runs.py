@@ -6,7 +6,7 @@ sweep asked for: the scenario as loaded with the run's overrides, the frames, an
 weights it loads) matches the current request; anything else is (re)run. A run's own output (its
 progress lines, errors) goes to `sweep-run.log` in its directory.
 
-Record once, replay the rest (docs/study.md "Replayed runs"): the CAV side of a run (traffic, sensing,
+Record once, replay the rest (docs/run.md "In a sweep"): the CAV side of a run (traffic, sensing,
 encoding, what goes on the air) depends only on the seed and the sender-side keys, so at each seed the first
 point of every group of points that differ only in receiver-side keys (v2vsim.replay.RECEIVER_SIDE) is run
 with `output.record_messages=true`, and every other point of the group is `v2vsim evaluate` over that
@@ -143,11 +143,12 @@ def weights_fingerprint(scenario: Path, overrides: Sequence[str]) -> str | None:
 RECORD = "output.record_messages=true"
 
 
-def replay_groups(axes: Sequence[Axis], pts: Sequence[Point]) -> list[int]:
+def replay_groups(axes: Sequence[Axis], pts: Sequence[Point], lockstep: Sequence[bool]) -> list[int]:
     """For each point, the index of the point whose recording it can replay (itself when it must be run):
     the first point with the same values on every axis that is not receiver-side. The methods, the output keys
     and duration_s count as sender-side here: a recording holds the kinds its own methods took, its scans only
-    with output.rerun on, and the frames its own duration gave."""
+    with output.rerun on, and the frames its own duration gave. A point on the realtime clock is its own group
+    (nothing to record: what its ego holds depends on the wall clock)."""
     from v2vsim.replay import receiver_side
 
     def sender_side(key: str) -> bool:
@@ -157,13 +158,13 @@ def replay_groups(axes: Sequence[Axis], pts: Sequence[Point]) -> list[int]:
     out = []
     for i, p in enumerate(pts):
         key = tuple(t for a, t in zip(axes, p.texts, strict=True) if sender_side(a.key))
-        out.append(first.setdefault(key, i))
+        out.append(first.setdefault(key, i) if lockstep[i] else i)
     return out
 
 
-def replay_refusal(scenario: Path, base: Sequence[str]) -> str | None:
-    """Why the sweep's runs cannot be recorded and replayed, or None when they can."""
-    sc = load_scenario(scenario, base)
+def replay_refusal(sc: Scenario) -> str | None:
+    """Why none of the sweep's runs can be recorded and replayed (`sc`: the scenario with the sweep's own
+    overrides), or None when they can."""
     if sc.transport.clock != "lockstep":
         return "transport.clock is realtime: its runs depend on the wall clock, and a recording needs lockstep"
     return None
@@ -174,24 +175,27 @@ def plan(scenario: Path, axes: Sequence[Axis], pts: Sequence[Point], seeds: Sequ
     """Every (point, seed) run, point-major: the same seeds at every point (a paired design). With `replay`,
     a point that differs from an earlier one only in receiver-side keys replays that point's recording of the
     same seed (replay_groups): the earlier point's runs record."""
-    groups = replay_groups(axes, pts) if replay else list(range(len(pts)))
+    configs = [effective_config(scenario, [*p.overrides(axes), *base]) for p in pts]
+    groups = (replay_groups(axes, pts, [c["transport"]["clock"] == "lockstep" for c in configs]) if replay
+              else list(range(len(pts))))
     recorders = {g for i, g in enumerate(groups) if g != i}
+
+    def run_dir(p: Point, seed: int) -> Path:
+        return out / "runs" / p.pid / f"seed{seed}"
+
     specs: list[RunSpec] = []
-    where: dict[tuple[int, int], Path] = {}
     for i, p in enumerate(pts):
         records = i in recorders
         extra = [RECORD] if records else []
-        config = effective_config(scenario, [*p.overrides(axes), *base, *extra])
+        config = effective_config(scenario, [*p.overrides(axes), *base, *extra]) if records else configs[i]
         weights = weights_fingerprint(scenario, [*p.overrides(axes), *base])
         for s in seeds:
-            run_dir = out / "runs" / p.pid / f"seed{s}"
             request = {"scenario": str(scenario), "overrides": [f"seed={s}", *p.overrides(axes), *base, *extra],
                        "frames": frames, "config": config | {"seed": s}, "weights": weights}
-            recording = where[(groups[i], s)] if groups[i] != i else None
+            recording = run_dir(pts[groups[i]], s) if groups[i] != i else None
             if recording is not None:
                 request["replay_of"] = str(recording)
-            where[(i, s)] = run_dir
-            specs.append(RunSpec(p, s, run_dir, tuple(p.overrides(axes)), request, recording, records))
+            specs.append(RunSpec(p, s, run_dir(p, s), tuple(p.overrides(axes)), request, recording, records))
     return specs
 
 
@@ -204,12 +208,13 @@ def read_metrics(run_dir: Path) -> dict | None:
 
 
 def recording_complete(run_dir: Path) -> bool:
-    """Whether run_dir holds a recording of all its frames (messages/header.json, status complete)."""
+    """Whether run_dir holds a recording this v2vsim reads, of every frame of its run."""
+    from v2vsim.recording.messages import Recording
+
     try:
-        header = json.loads((run_dir / "messages" / "header.json").read_text())
+        return Recording(run_dir / "messages").complete
     except (OSError, ValueError):
         return False
-    return isinstance(header, dict) and header.get("status") == "complete"
 
 
 def is_done(spec: RunSpec) -> bool:

@@ -79,7 +79,7 @@ def prepare(args: SweepArgs) -> Design:
     check_output_dir(args.out, "--out")
     no_replay = ("--no-replay" if not args.replay else
                  "--engine dask (a recording stays on the worker that made it)" if args.engine == "dask" else
-                 replay_refusal(scenario, base))
+                 replay_refusal(sc))
     specs = plan(scenario, axes, pts, seeds, base, args.frames, args.out, replay=no_replay is None)
     return Design(scenario, sc.name, axes, pts, seeds, base, specs, no_replay)
 

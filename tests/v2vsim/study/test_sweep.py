@@ -123,9 +123,11 @@ class FakeJob:
                                              if code else "v2vsim: done\n")
         if status:
             spec.out.joinpath("metrics.json").write_text(json.dumps(_fake_metrics(spec) | {"status": status}))
-        if spec.records and status == "complete":  # what output.record_messages leaves
+        if spec.records and status == "complete":  # what output.record_messages leaves (header and map)
             (spec.out / "messages").mkdir(exist_ok=True)
-            (spec.out / "messages" / "header.json").write_text(json.dumps({"status": "complete"}))
+            (spec.out / "messages" / "header.json").write_text(json.dumps(
+                {"format": "v2vsim.messages", "version": 1, "chunks": [], "status": "complete"}))
+            (spec.out / "messages" / "static.bin").write_bytes(b"")
 
     def poll(self) -> int | None:
         return self.code
@@ -312,6 +314,12 @@ def test_points_that_differ_only_in_receiver_side_keys_replay_the_first_ones_rec
     assert not any(s.replayed or s.records for s in d.specs)
     d = prepare(_args(tmp_path, grid=("duration_s=1,2",), seeds="0", replay=True))  # another number of frames
     assert not any(s.replayed or s.records for s in d.specs)
+    # a realtime point has nothing to record: on a swept clock only the lockstep points replay
+    d = prepare(_args(tmp_path, grid=("transport.clock=lockstep,realtime", "comm.drop.p=0,0.5"), seeds="0",
+                      replay=True))
+    assert [(s.point.texts, s.records, s.replayed) for s in d.specs] == [
+        (("lockstep", "0"), True, False), (("lockstep", "0.5"), False, True),
+        (("realtime", "0"), False, False), (("realtime", "0.5"), False, False)]
     # the dask engine and the realtime clock simulate every run, saying why
     assert prepare(_args(tmp_path, "transport.clock=realtime", replay=True)).no_replay.startswith("transport.clock")
     assert prepare(_args(tmp_path)).no_replay == "--no-replay"
