@@ -19,8 +19,10 @@ from __future__ import annotations
 import json
 import sys
 import time
+from functools import partial
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from agents.common import (
@@ -62,9 +64,10 @@ from v2vsim.perception.precision import resolve as resolve_precision
 from v2vsim.recording.messages import MessageTape
 from v2vsim.recording.recorder import Recorder
 from v2vsim.recording.scan import max_scan_bytes
-from v2vsim.sensors.scene import build_map_assets
+from v2vsim.sensors.scene import MapAssets, build_map_assets
 from v2vsim.world.geometry import Pose
 from v2vsim.world.serialize import static_from_bytes, world_from_bytes
+from v2vsim.world.state import WorldState
 
 MAX_VIS_BYTES = 1 << 20  # the visible-ids side channel: a few hundred ids
 
@@ -104,6 +107,9 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None) -> int:
     # a compressed wire: the ego's own CAV also hands it its map uncompressed ("own"), which it fuses as its own
     own_decoder = None if compressor is None else EgoDecoder({"features": ego_wire_spec(sc, c, f, 1)["features"]},
                                                              args.run_id, frozenset({me}), key)
+    if replay is not None:  # replays of one recording in one process decode each message once
+        decoder = replay.decoder(decoder, "v2v")
+        own_decoder = None if own_decoder is None else replay.decoder(own_decoder, "own")
 
     side = ["vis", "scan"] if sc.output.rerun else ["vis"]
     def check(kind: str, sender: str, data: bytes) -> int:
@@ -144,6 +150,8 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None) -> int:
         box.on_collect = tape.collected
     timer = StageTimer()
     after = AfterFusion(scores, recorder, timer)
+    memo = None if replay is None else replay.prediction_memo(precision, sc.bev.cells)
+    progress_name = f"ego.{me}" if replay is None or replay.label is None else replay.label
     bus.ready()
     t_start = time.monotonic()
     frames_done = 0
@@ -181,7 +189,8 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None) -> int:
             if tape is not None:
                 tape.world(k, data)
             with timer.stage("comm"):
-                world = world_from_bytes(data, static)
+                world = (world_from_bytes(data, static) if replay is None
+                         else replay.once(("world",), partial(world_from_bytes, data, static)))
             ego_actor = world.actor(me)
             if ego_actor is None:
                 status = f"ego {me} left the simulation at frame {k}"
@@ -215,10 +224,10 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None) -> int:
                     inp.extrapolated = {m: extrapolate_features(e, inp, sc.bev.size_m)
                                         for m, e in extrapolations.items()}
             with timer.stage("ground_truth"):
-                gt = bev_ground_truth(world, me, sc.bev, visible, assets=assets)
-                boxes_gt, ids = gt_boxes(world, me, sc.bev)
-                boxes_gt = boxes_gt[[i in visible for i in ids]] if len(ids) else boxes_gt
-            preds = predict_all(models, inp, sc.bev.cells, precision)
+                gt, boxes_gt = (ground_truth(world, me, sc, visible, assets) if replay is None else
+                                replay.once(("ground_truth", me, frozenset(visible)),
+                                            partial(ground_truth, world, me, sc, visible, assets)))
+            preds = predict_all(models, inp, sc.bev.cells, precision, memo)
             for m, pred in preds.items():
                 timer.add(f"fusion.{m}", pred.ms - pred.decode_ms)
                 timer.add(f"decoding.{m}", pred.decode_ms)
@@ -233,7 +242,7 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None) -> int:
             if not realtime:
                 with timer.stage("comm"):
                     bus.put("ack", json.dumps({"ego": me, "frame": k}).encode())
-            report_progress(f"ego.{me}", k + 1, args.frames, delivered=stats.delivered, dropped=stats.dropped,
+            report_progress(progress_name, k + 1, args.frames, delivered=stats.delivered, dropped=stats.dropped,
                             out_of_range=stats.out_of_range)
     except Stop:
         # The runner stops everyone when the driver dies: say so rather than "interrupted".
@@ -265,9 +274,19 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None) -> int:
                 recorder.close()
             if tape is not None:
                 tape.close(status=status, lost=lost, control=bus.control_rejections())
+            if replay is not None:
+                replay.close()
         if late_error is not None:
             raise late_error
     return code
+
+
+def ground_truth(world: WorldState, me: str, sc: Scenario, visible: set[str],
+                 assets: MapAssets) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """The ego's BEV ground truth masks and its scored boxes [K, 5] (the vehicles some CAV saw)."""
+    gt = bev_ground_truth(world, me, sc.bev, visible, assets=assets)
+    boxes_gt, ids = gt_boxes(world, me, sc.bev)
+    return gt, boxes_gt[[i in visible for i in ids]] if len(ids) else boxes_gt
 
 
 def _crashed(where: str, e: BaseException) -> str:

@@ -60,9 +60,23 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         overrides.append(f"perception.methods=[{methods}]")
     if args.frames is not None and args.frames < 1:
         raise ConfigError(f"--frames {args.frames}: expected a number of frames >= 1")
-    from v2vsim.replay import evaluate
+    from v2vsim.replay import evaluate_points, read_plan
 
-    return evaluate(Path(args.recording), overrides, Path(args.out), frames=args.frames)
+    if args.plan is not None:
+        if args.grid or args.out is not None:
+            raise ConfigError("--plan names every point's folder and overrides: it takes no --grid or --out")
+        points = [([*o, *overrides], out) for o, out in read_plan(Path(args.plan))]
+    elif args.out is None:
+        raise ConfigError("--out: required (the output folder; with --grid, each point in a subfolder of it)")
+    elif args.grid:
+        from v2vsim.study.grid import parse_axes
+        from v2vsim.study.grid import points as grid_points
+
+        axes = parse_axes(args.grid)
+        points = [([*p.overrides(axes), *overrides], Path(args.out) / p.pid) for p in grid_points(axes)]
+    else:
+        points = [(overrides, Path(args.out))]
+    return evaluate_points(Path(args.recording), points, frames=args.frames)
 
 
 def _cmd_agent(args: argparse.Namespace) -> int:
@@ -277,7 +291,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY.PATH=VALUE",
                    help="override a receiver-side key, e.g. --set comm.drop.p=0.3 (repeatable)")
     p.add_argument("--frames", type=int, default=None, help="replay only the first N frames")
-    p.add_argument("--out", required=True, help="output directory: metrics.json, report.md, plots")
+    p.add_argument("--grid", action="append", default=[], metavar="KEY.PATH=V1,V2,...",
+                   help="replay every point of this grid of receiver-side keys in one pass, each into "
+                   "OUT/<point>/ (repeatable: the Cartesian product)")
+    p.add_argument("--plan", default=None, metavar="FILE",
+                   help='points to replay in one pass, as JSON: [{"out": DIR, "overrides": ["KEY=VALUE", ...]}, ...] '
+                   "(what v2vsim sweep writes; instead of --out and --grid)")
+    p.add_argument("--out", default=None, help="output directory: metrics.json, report.md, plots")
     p.set_defaults(func=_cmd_evaluate)
 
     p = sub.add_parser("agent", help="run one CAV perception agent of a run started elsewhere (across hosts)")

@@ -10,10 +10,20 @@ CAVs sent, and is a ConfigError naming it (exit 2).
 from __future__ import annotations
 
 import dataclasses
+import json
 import sys
+import threading
+import time
+import traceback
+from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from v2vsim.config import ConfigError, Scenario, check_output_dir, load_scenario
+
+if TYPE_CHECKING:
+    from agents.common import AgentArgs
+    from v2vsim.recording.messages import Recording
 
 # What acts only at the receiver: a key equal to one of these, or under one (dotted prefix).
 RECEIVER_SIDE = (
@@ -34,13 +44,105 @@ def _needed_kinds(methods: tuple[str, ...], lidar: bool) -> list[str]:
         ["outputs"] if "late" in methods else [])
 
 
+def read_plan(path: Path) -> list[tuple[list[str], Path]]:
+    """`evaluate --plan FILE`: [{"out": DIR, "overrides": ["KEY=VALUE", ...]}, ...] as (overrides, out) pairs."""
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise ConfigError(f"--plan {path}: {e}") from None
+    ok = isinstance(doc, list) and doc and all(
+        isinstance(d, dict) and isinstance(d.get("out"), str) and isinstance(d.get("overrides", []), list)
+        and all(isinstance(o, str) for o in d.get("overrides", [])) for d in doc)
+    if not ok:
+        raise ConfigError(f'--plan {path}: expected a non-empty JSON list of {{"out": DIR, "overrides": '
+                          '["KEY=VALUE", ...]}')
+    return [(list(d.get("overrides", [])), Path(d["out"])) for d in doc]
+
+
 def evaluate(recording: Path, overrides: list[str], out: Path, frames: int | None = None) -> int:
-    from v2vsim.recording.messages import Recording, resolved_keys
+    """Replay the recording once, with `overrides`, into `out`."""
+    return evaluate_points(recording, [(overrides, out)], frames)
+
+
+def evaluate_points(recording: Path, points: Sequence[tuple[Sequence[str], Path]], frames: int | None = None) -> int:
+    """Replay the recording once per point (overrides, out) in one pass: one ego_loop thread per point over a
+    shared reading of the recording (agents.ego_replay.ReplayShare), so that decoding, the worlds, the ground truth
+    and every prediction whose fusion inputs two points share are computed once. Every point is checked before any
+    runs. Returns the worst exit code of the points."""
+    from v2vsim.recording.messages import Recording
 
     try:
         rec = Recording(recording)
     except (OSError, ValueError) as e:
         raise ConfigError(str(e)) from None
+    outs = [out.resolve() for _, out in points]
+    if len(set(outs)) < len(outs):
+        raise ConfigError("--out: two points write to the same folder; give each its own")
+    many = len(points) > 1
+    plans = []
+    for overrides, out in points:
+        try:
+            plans.append(_prepare(rec, recording, list(overrides), out, frames))
+        except ConfigError as e:
+            raise ConfigError(f"{out}: {e}" if many else str(e)) from None
+    if not many:
+        from agents.ego import ego_loop
+        from agents.ego_replay import ReplayBus
+
+        args, n = plans[0]
+        bus = ReplayBus(rec, n)
+        return ego_loop(args, bus, replay=bus)  # type: ignore[arg-type]
+    labels = [f"ego.{args.cav} [{', '.join(o) or out.name}]" for (args, _), (o, out) in zip(plans, points, strict=True)]
+    return _replay_together(rec, [a for a, _ in plans], plans[0][1], labels)
+
+
+def _replay_together(rec: Recording, runs: list[AgentArgs], frames: int, labels: list[str]) -> int:
+    """Every run's ego_loop on its own thread over one ReplayShare; Ctrl-C stops them all (each writes its
+    results as interrupted)."""
+    from agents.common import Stop
+    from agents.ego import ego_loop
+    from agents.ego_replay import ReplayBus, ReplayShare
+
+    share = ReplayShare(rec, frames, len(runs))
+    codes = [0] * len(runs)
+    t0 = time.monotonic()
+
+    def replay(i: int) -> None:
+        bus = ReplayBus(rec, frames, share, i, label=labels[i])
+        try:
+            codes[i] = ego_loop(runs[i], bus, replay=bus)  # type: ignore[arg-type]
+        except Stop:
+            codes[i] = 130
+        except BaseException:  # noqa: BLE001 - this point crashed (its metrics.json says so); the others go on
+            traceback.print_exc()
+            codes[i] = 1
+        finally:
+            bus.close()
+
+    threads = [threading.Thread(target=replay, args=(i,), name=f"replay-{i}") for i in range(len(runs))]
+    for t in threads:
+        t.start()
+    try:
+        for t in threads:
+            while t.is_alive():
+                t.join(0.5)
+    except KeyboardInterrupt:
+        share.stop()
+        for t in threads:
+            t.join()
+        return 130
+    print(f"v2vsim evaluate: {len(runs)} points replayed in one pass in {time.monotonic() - t0:.1f} s; "
+          f"{share.hits} of {share.lookups} decodes, worlds, ground truths and predictions were shared",
+          file=sys.stderr)
+    return max(codes)
+
+
+def _prepare(rec: Recording, recording: Path, overrides: list[str], out: Path, frames: int | None
+             ) -> tuple[AgentArgs, int]:
+    """One point's ego arguments and frame count, after checking that its keys are receiver-side, that the
+    recording holds what its methods need, and that --out is a new folder."""
+    from v2vsim.recording.messages import resolved_keys
+
     h = rec.header
     source = Path(h["scenario"]["source"])
     if not source.exists():
@@ -87,11 +189,8 @@ def evaluate(recording: Path, overrides: list[str], out: Path, frames: int | Non
 
     check_scenario(sc)
     from agents.common import AgentArgs
-    from agents.ego import ego_loop
-    from agents.ego_replay import ReplayBus
 
     args = AgentArgs(scenario=sc, scenario_path=str(source), overrides=tuple(sc.overrides), run_id=h["run_id"],
                      listen="", peers=(), cavs=tuple(h["cavs"]), egos=(h["ego"],), cav=h["ego"], frames=n,
                      out=str(out))
-    bus = ReplayBus(rec, n)
-    return ego_loop(args, bus, replay=bus)  # type: ignore[arg-type]
+    return args, n

@@ -8,13 +8,15 @@ the same code given the same FusionInputs (the ego calls its two halves, `predic
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import torch
 from torch import nn
 
 from models.nms import rotated_iou_matrix
 from v2vsim.evaluation.metrics import MethodScore
-from v2vsim.perception.fuse import FusionInputs, Prediction, predict
+from v2vsim.perception.fuse import FusionInputs, Prediction, fusion_key, predict
 from v2vsim.perception.precision import Precision
 
 
@@ -30,12 +32,21 @@ def fuse_and_score(models: dict[str, nn.Module], inp: FusionInputs, cells: int, 
     return preds
 
 
+PredictionMemo = Callable[[str, nn.Module, bytes, Callable[[], "Prediction | None"]], "Prediction | None"]
+"""memo(method, model, fusion_key, compute) -> compute()'s value, or the one computed before for the same method,
+model and key (agents.ego_replay.ReplayBus.prediction_memo: replays of one recording in one process)."""
+
+
 def predict_all(models: dict[str, nn.Module], inp: FusionInputs, cells: int,
-                precision: Precision = "fp32") -> dict[str, Prediction]:
-    """Every method's prediction for one frame (methods without input are left out)."""
+                precision: Precision = "fp32", memo: PredictionMemo | None = None) -> dict[str, Prediction]:
+    """Every method's prediction for one frame (methods without input are left out). With `memo`, a prediction
+    from the same model and fusion inputs (fusion_key) is taken from it; its `ms` is that computation's."""
     preds = {}
     for m, model in models.items():
-        pred = predict(m, model, inp, cells, precision)
+        if memo is None:
+            pred = predict(m, model, inp, cells, precision)
+        else:
+            pred = memo(m, model, fusion_key(m, inp), lambda m=m, model=model: predict(m, model, inp, cells, precision))
         if pred is not None:
             preds[m] = pred
     return preds

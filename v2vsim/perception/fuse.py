@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import time
 from dataclasses import dataclass, field
 
@@ -59,6 +60,43 @@ def _stack(inp: FusionInputs, table: dict[str, np.ndarray]) -> tuple[list[str], 
 def _poses(inp: FusionInputs, names: list[str], kind: str) -> Tensor:
     idx = [inp.senders.index(s) for s in names]
     return torch.from_numpy(inp.poses_by_kind.get(kind, inp.rel_poses)[idx]).float()
+
+
+def fusion_key(method: str, inp: FusionInputs) -> bytes:
+    """A digest of exactly what predict(method, ...) reads of `inp` (the same selection, in the same order):
+    two FusionInputs with the same key give that method the same prediction from the same model. Replays of one
+    recording in one process share predictions by it (agents.ego_replay.ReplayShare)."""
+    h = hashlib.sha1(method.encode())
+    ego = inp.senders[0]
+
+    def add(name: str, *arrays: np.ndarray) -> None:
+        h.update(name.encode())
+        for a in arrays:
+            a = np.ascontiguousarray(a)
+            h.update(f"{a.dtype}{a.shape}".encode())
+            h.update(a.data)
+
+    def poses(names: list[str], kind: str) -> np.ndarray:
+        return inp.poses_by_kind.get(kind, inp.rel_poses)[[inp.senders.index(s) for s in names]]
+
+    if method == "late":
+        table: dict = inp.outputs
+        kind = "outputs"
+    elif method == "early":
+        table, kind = inp.points, "points"
+    elif method == "none" or not is_intermediate(method):
+        table, kind = ({ego: inp.features[ego]} if ego in inp.features else {}), ""
+    else:
+        table, kind = {**inp.features, **inp.extrapolated.get(method, {})}, "features"
+    if ego not in table:
+        return h.digest() + b"-"  # no input: predict returns None
+    names = [s for s in inp.senders if s in table]
+    for s in names:
+        v = table[s]
+        add(s, *(v if isinstance(v, tuple) else (v,)))
+    if kind:
+        add("poses", poses(names, kind))
+    return h.digest()
 
 
 @torch.no_grad()

@@ -37,6 +37,7 @@ TAIL_LINES = 8
 HEARTBEAT_S = 60.0
 LOG = "sweep-run.log"
 REQUEST = "sweep_run.json"
+PLAN = "replay_plan.json"
 
 
 @dataclass(frozen=True)
@@ -48,13 +49,27 @@ class RunSpec:
     request: dict  # scenario digest, overrides (seed first), frames: what makes two runs the same run
     recording: Path | None = None  # a replayed run: the run folder whose messages/ it replays
     records: bool = False  # a recording run: other points of its seed replay it
+    batch: int | None = None  # replays of one recording with the same batch run in one process (evaluate --plan)
+    together: tuple[RunSpec, ...] = ()  # as started: the other replays of its batch, in this spec's process
 
     @property
     def replayed(self) -> bool:
         return self.recording is not None
 
+    @property
+    def plan_file(self) -> Path:
+        return self.out / PLAN
+
+    def plan_doc(self) -> list[dict]:
+        """`v2vsim evaluate --plan` of this spec and those `together` with it."""
+        return [{"out": str(s.out), "overrides": list(s.request["overrides"])} for s in (self, *self.together)]
+
     def argv(self, scenario: Path, out: Path | None = None) -> list[str]:
-        """`python` arguments of the run (`out`: write elsewhere than self.out, e.g. on a cluster worker)."""
+        """`python` arguments of the run (`out`: write elsewhere than self.out, e.g. on a cluster worker). Replays
+        started together read their points from plan_file (ProcessJob writes it)."""
+        if self.recording is not None and self.together:
+            args = ["-m", "v2vsim.cli", "evaluate", str(self.recording), "--plan", str(self.plan_file)]
+            return args + (["--frames", str(self.request["frames"])] if self.request["frames"] is not None else [])
         if self.recording is not None:
             args = ["-m", "v2vsim.cli", "evaluate", str(self.recording), "--out", str(out or self.out)]
         else:
@@ -171,10 +186,12 @@ def replay_refusal(sc: Scenario) -> str | None:
 
 
 def plan(scenario: Path, axes: Sequence[Axis], pts: Sequence[Point], seeds: Sequence[int], base: Sequence[str],
-         frames: int | None, out: Path, replay: bool = False) -> list[RunSpec]:
+         frames: int | None, out: Path, replay: bool = False, jobs: int = 1) -> list[RunSpec]:
     """Every (point, seed) run, point-major: the same seeds at every point (a paired design). With `replay`,
     a point that differs from an earlier one only in receiver-side keys replays that point's recording of the
-    same seed (replay_groups): the earlier point's runs record."""
+    same seed (replay_groups): the earlier point's runs record. The replays of one recording run in one process
+    (they share decoding, ground truth and equal fusions: v2vsim.replay.evaluate_points), split into as many
+    batches of neighbouring points as keep the 2 x `jobs` replay slots busy (batches_per_recording)."""
     configs = [effective_config(scenario, [*p.overrides(axes), *base]) for p in pts]
     groups = (replay_groups(axes, pts, [c["transport"]["clock"] == "lockstep" for c in configs]) if replay
               else list(range(len(pts))))
@@ -196,7 +213,31 @@ def plan(scenario: Path, axes: Sequence[Axis], pts: Sequence[Point], seeds: Sequ
             if recording is not None:
                 request["replay_of"] = str(recording)
             specs.append(RunSpec(p, s, run_dir(p, s), tuple(p.overrides(axes)), request, recording, records))
-    return specs
+    return _batched(specs, jobs)
+
+
+def batches_per_recording(recordings: int, replays: int, jobs: int) -> int:
+    """Into how many processes the `replays` replays of one recording are split, with `recordings` recordings
+    replayed in all: enough for the sweep's 2 x jobs replay slots, no more (each split shares less)."""
+    return max(1, min(replays, -(-2 * jobs // max(1, recordings))))
+
+
+def _batched(specs: list[RunSpec], jobs: int) -> list[RunSpec]:
+    """Number each replay's batch: its recording's replays, in grid order, cut into contiguous runs of points
+    (neighbouring points share the most fusion inputs)."""
+    by_recording: dict[Path, list[int]] = {}
+    for i, s in enumerate(specs):
+        if s.recording is not None:
+            by_recording.setdefault(s.recording, []).append(i)
+    out = list(specs)
+    batch = 0
+    for idx in by_recording.values():
+        n = batches_per_recording(len(by_recording), len(idx), jobs)
+        size = -(-len(idx) // n)
+        for j, i in enumerate(idx):
+            out[i] = dataclasses.replace(specs[i], batch=batch + j // size)
+        batch += n
+    return out
 
 
 def read_metrics(run_dir: Path) -> dict | None:
@@ -245,6 +286,12 @@ class ProcessJob:
 
     def __init__(self, spec: RunSpec, scenario: Path) -> None:
         spec.out.mkdir(parents=True, exist_ok=True)
+        if spec.together:
+            spec.plan_file.write_text(json.dumps(spec.plan_doc(), indent=2))
+            for other in spec.together:
+                other.out.mkdir(parents=True, exist_ok=True)
+                (other.out / LOG).write_text(f"replayed in one process with {spec.out.parent.name}; its output: "
+                                             f"{spec.out / LOG}\n")
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         with open(spec.out / LOG, "wb") as log:
             self.proc = subprocess.Popen([sys.executable, *spec.argv(scenario)], stdin=subprocess.DEVNULL,
@@ -279,13 +326,14 @@ def _tail(path: Path, n: int = TAIL_LINES) -> tuple[str, ...]:
     return tuple(ln for ln in lines if ln.strip())[-n:]
 
 
-def _finish(spec: RunSpec, code: int, wall_s: float) -> RunResult:
+def _finish(spec: RunSpec, code: int, wall_s: float, log: Path | None = None) -> RunResult:
+    """The result of a finished run; `log`: where its output went (replays started together: the first's)."""
     doc = read_metrics(spec.out)
     status = None if doc is None else doc.get("status")
-    if code == 0 and status == "complete":
+    if status == "complete" and (code == 0 or log is not None):  # together: another point's failure is not its
         return RunResult(spec, True, code=code, wall_s=wall_s)
     why = f"exit code {code}" + (f", status {status!r}" if status else ", no metrics.json")
-    return RunResult(spec, False, code=code, wall_s=wall_s, why=why, tail=_tail(spec.out / LOG))
+    return RunResult(spec, False, code=code, wall_s=wall_s, why=why, tail=_tail(log or spec.out / LOG))
 
 
 def _duration(s: float) -> str:
@@ -333,8 +381,8 @@ class Progress:
 
 
 def slots(spec: RunSpec) -> int:
-    """Core slots a run takes: a simulated run keeps about two cores busy (driver, CAVs, ego), a replay is one
-    process."""
+    """Core slots a run takes: a simulated run keeps about two cores busy (driver, CAVs, ego), a replay (or a
+    batch of replays together) is one process."""
     return 1 if spec.replayed else 2
 
 
@@ -353,7 +401,7 @@ def execute(specs: Sequence[RunSpec], jobs: int, start: Callable[[RunSpec], Job]
             pending.append(s)
     progress.t0 = time.monotonic()
     progress.reused = progress.done = len(results)
-    running: list[tuple[RunSpec, Job, float]] = []
+    running: list[tuple[RunSpec, Job, float]] = []  # a replay batch: its first spec, with .together
     outcome = {r.spec.out: r for r in results}
 
     def next_ready(free: int) -> RunSpec | None:
@@ -367,7 +415,14 @@ def execute(specs: Sequence[RunSpec], jobs: int, start: Callable[[RunSpec], Job]
                 if not (source.ok and recording_complete(spec.recording)):
                     fail_replay(pending.pop(i))
                     return next_ready(free)
-            return pending.pop(i) if slots(spec) <= free else None
+            if slots(spec) > free:
+                return None
+            lead = pending.pop(i)
+            if lead.batch is None:
+                return lead
+            rest = tuple(s for s in pending if s.recording == lead.recording and s.batch == lead.batch)
+            pending[:] = [s for s in pending if s not in rest]
+            return dataclasses.replace(lead, together=rest) if rest else lead
         return None
 
     def fail_replay(spec: RunSpec) -> None:
@@ -381,9 +436,10 @@ def execute(specs: Sequence[RunSpec], jobs: int, start: Callable[[RunSpec], Job]
 
     def fill() -> None:
         while (spec := next_ready(2 * jobs - sum(slots(x) for x, _, _ in running))) is not None:
-            spec.out.mkdir(parents=True, exist_ok=True)
-            (spec.out / "metrics.json").unlink(missing_ok=True)  # stale, or another request's
-            (spec.out / REQUEST).write_text(json.dumps(spec.request, indent=2))
+            for s in (spec, *spec.together):
+                s.out.mkdir(parents=True, exist_ok=True)
+                (s.out / "metrics.json").unlink(missing_ok=True)  # stale, or another request's
+                (s.out / REQUEST).write_text(json.dumps(s.request, indent=2))
             running.append((spec, start(spec), time.monotonic()))
 
     try:
@@ -399,16 +455,19 @@ def execute(specs: Sequence[RunSpec], jobs: int, start: Callable[[RunSpec], Job]
                     shown = time.monotonic()
                 continue
             running[:] = [item for item in running if item not in [f for f, _ in finished]]
-            for (spec, _, t0), code in finished:
-                r = _finish(spec, code, time.monotonic() - t0)
-                results.append(r)
-                outcome[spec.out] = r
-                progress.done += 1
-                progress.walls += (r.wall_s,)
-                if not r.ok:
-                    progress.failed += 1
-                    progress.say(f"v2vsim sweep: run {describe(spec)} failed ({r.why}); last lines of "
-                                 f"{spec.out / LOG}:" + "".join(f"\n    {ln}" for ln in r.tail))
+            for (lead, _, t0), code in finished:
+                group = (dataclasses.replace(lead, together=()), *lead.together)
+                wall = (time.monotonic() - t0) / len(group)  # per run: what the ETA counts
+                for spec in group:
+                    r = _finish(spec, code, wall, lead.out / LOG if lead.together else None)
+                    results.append(r)
+                    outcome[spec.out] = r
+                    progress.done += 1
+                    progress.walls += (r.wall_s,)
+                    if not r.ok:
+                        progress.failed += 1
+                        progress.say(f"v2vsim sweep: run {describe(spec)} failed ({r.why}); last lines of "
+                                     f"{lead.out / LOG}:" + "".join(f"\n    {ln}" for ln in r.tail))
             fill()
             progress.show(len(running))
             shown = time.monotonic()

@@ -80,7 +80,8 @@ def prepare(args: SweepArgs) -> Design:
     no_replay = ("--no-replay" if not args.replay else
                  "--engine dask (a recording stays on the worker that made it)" if args.engine == "dask" else
                  replay_refusal(sc))
-    specs = plan(scenario, axes, pts, seeds, base, args.frames, args.out, replay=no_replay is None)
+    specs = plan(scenario, axes, pts, seeds, base, args.frames, args.out, replay=no_replay is None,
+                 jobs=args.jobs or 1)
     return Design(scenario, sc.name, axes, pts, seeds, base, specs, no_replay)
 
 
@@ -92,9 +93,10 @@ def replay_line(d: Design) -> str:
         return f"v2vsim sweep: every run is simulated ({why})"
     recorders = sorted({s.point.pid for s in d.specs if s.records})
     points = sorted({s.point.pid for s in replayed})
+    batches = len({(s.recording, s.batch) for s in replayed})
     return (f"v2vsim sweep: {len(d.specs) - len(replayed)} runs simulated, {len(replayed)} replayed "
-            f"(v2vsim evaluate) from the recordings of point(s) {', '.join(recorders)} at the same seed; "
-            f"replayed point(s): {', '.join(points)}")
+            f"({batches} v2vsim evaluate process(es)) from the recordings of point(s) {', '.join(recorders)} at the "
+            f"same seed; replayed point(s): {', '.join(points)}")
 
 
 def sweep(args: SweepArgs, start: Callable[[RunSpec], Job] | None = None, stream: TextIO | None = None) -> int:

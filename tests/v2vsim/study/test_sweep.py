@@ -114,11 +114,14 @@ def _fake_metrics(spec: runs_mod.RunSpec) -> dict:
 
 
 class FakeJob:
-    """A run that has finished by the time it is polled: writes what `v2vsim run` would."""
+    """A run that has finished by the time it is polled: writes what `v2vsim run` would (replays started
+    together: what each would)."""
 
     def __init__(self, spec: runs_mod.RunSpec, code: int = 0, status: str = "complete") -> None:
         self.code = code
         self.interrupted = False
+        for other in spec.together:
+            other.out.joinpath("metrics.json").write_text(json.dumps(_fake_metrics(other) | {"status": "complete"}))
         (spec.out / runs_mod.LOG).write_text("v2vsim: run abc: 2 CAVs\nTraceback ...\nValueError: boom\n"
                                              if code else "v2vsim: done\n")
         if status:
@@ -150,6 +153,7 @@ class FakeStarter:
         if self.interrupt_at is not None and len(self.started) == self.interrupt_at:
             raise KeyboardInterrupt
         self.started.append(key)
+        self.started += [(s.point.texts[0] if s.point.texts else "", s.seed) for s in spec.together]
         if key in self.fail:
             return FakeJob(spec, code=1, status="")
         return FakeJob(spec, status="interrupted after 1 frames" if key in self.partial else "complete")
@@ -339,7 +343,9 @@ def test_a_replay_waits_for_its_recording_and_fails_with_it(tmp_path: Path, monk
     assert sweep(SweepArgs(SCENARIO, ("comm.drop.p=0,0.5,1",), "0-2", out, frames=2, jobs=3), start=start,
                  stream=log) == 1
     text = log.getvalue()
-    assert "3 runs simulated, 6 replayed (v2vsim evaluate) from the recordings of point(s) comm.drop.p=0" in text
+    # --jobs 3: six replay slots, so each replay in its own process
+    assert "3 runs simulated, 6 replayed (6 v2vsim evaluate process(es)) from the recordings of point(s) " \
+        "comm.drop.p=0" in text
     # every replay started after its seed's recording run had finished; seed 1's were never started
     order = start.started
     assert sorted(order) == [("0", 0), ("0", 1), ("0", 2), ("0.5", 0), ("0.5", 2), ("1", 0), ("1", 2)]
@@ -465,23 +471,23 @@ def test_per_frame_values_come_from_the_recording(tmp_path: Path) -> None:
 # ---- the real thing --------------------------------------------------------------------------------------
 
 
-def test_real_two_point_sweep_writes_the_contract_csv_and_plots(tmp_path: Path) -> None:
+def test_real_sweep_writes_the_contract_csv_and_plots_and_replays_bit_for_bit(tmp_path: Path) -> None:
     import subprocess
 
     out = tmp_path / "sweep"
     t0 = time.monotonic()
-    r = subprocess.run([sys.executable, "-m", "v2vsim.cli", "sweep", str(SCENARIO), "--grid", "comm.drop.p=0,0.5",
-                        "--seeds", "0-0", "--frames", "3", "--set", "cavs.count=2", "--methods", "none,cobevt",
-                        "--bootstrap", "200", "--out", str(out)], capture_output=True, text=True, cwd=REPO,
-                       timeout=240)
+    r = subprocess.run([sys.executable, "-m", "v2vsim.cli", "sweep", str(SCENARIO), "--grid",
+                        "comm.drop.p=0,0.25,0.5,0.75", "--seeds", "0-0", "--frames", "3", "--set", "cavs.count=2",
+                        "--methods", "none,cobevt", "--bootstrap", "200", "--out", str(out)], capture_output=True,
+                       text=True, cwd=REPO, timeout=240)
     took = time.monotonic() - t0
     assert r.returncode == 0, r.stderr
     print(f"real sweep: {took:.1f} s")
-    assert "v2vsim sweep: 2/2 runs, 0 running" in r.stderr
+    assert "v2vsim sweep: 4/4 runs, 0 running" in r.stderr
     rows = _csv(out / "sweep.csv")
     assert list(rows[0])[:3 + len(CONTRACT_METRICS)] == ["comm.drop.p", "seed", "method", *CONTRACT_METRICS]
     assert [(x["comm.drop.p"], x["seed"], x["method"]) for x in rows] == [
-        ("0", "0", "none"), ("0", "0", "cobevt"), ("0.5", "0", "none"), ("0.5", "0", "cobevt")]
+        (p, "0", m) for p in ("0", "0.25", "0.5", "0.75") for m in ("none", "cobevt")]
     for x in rows:
         assert 0 <= float(x["iou_vehicle"]) <= 1 and float(x["fusion_ms"]) > 0
     run = out / "runs" / "comm.drop.p=0.5" / "seed0"
@@ -496,10 +502,18 @@ def test_real_two_point_sweep_writes_the_contract_csv_and_plots(tmp_path: Path) 
                  "sweep_comm.drop.p_ap70.png"):
         assert (out / name).stat().st_size > 0, name
 
-    # drop.p=0.5 was replayed from drop.p=0's recording; simulated instead, it scores the same, bit for bit
-    assert "1 runs simulated, 1 replayed (v2vsim evaluate) from the recordings of point(s) comm.drop.p=0" in r.stderr
+    # drop.p=0.25, 0.5 and 0.75 were replayed from drop.p=0's recording, in two processes for the two replay
+    # slots: 0.25 and 0.5 in one (one pass, shared work), 0.75 in the other
+    assert "1 runs simulated, 3 replayed (2 v2vsim evaluate process(es)) from the recordings of point(s) " \
+        "comm.drop.p=0" in r.stderr
     assert (out / "runs" / "comm.drop.p=0" / "seed0" / "messages" / "header.json").is_file()
-    assert "frame 3/3" in (run / "sweep-run.log").read_text() and not (run / "messages").exists()
+    first = out / "runs" / "comm.drop.p=0.25" / "seed0"
+    assert "replayed in one process with comm.drop.p=0.25" in (run / "sweep-run.log").read_text()
+    log = (first / "sweep-run.log").read_text()
+    assert "2 points replayed in one pass" in log and log.count("frame 3/3") == 2, log
+    assert json.loads((first / "replay_plan.json").read_text())[1]["out"] == str(run)
+    assert "frame 3/3" in (out / "runs" / "comm.drop.p=0.75" / "seed0" / "sweep-run.log").read_text()
+    assert not (run / "messages").exists()
     recorded = out / "runs" / "comm.drop.p=0" / "seed0"
     assert json.loads((run / "sweep_run.json").read_text())["replay_of"] == str(recorded)
     live = tmp_path / "live"
@@ -510,8 +524,9 @@ def test_real_two_point_sweep_writes_the_contract_csv_and_plots(tmp_path: Path) 
     assert r.returncode == 0, r.stderr
     assert "every run is simulated (--no-replay)" in r.stderr
     timing = {"fusion_ms"}
+    # simulated instead, drop.p=0.5 scores the same, bit for bit
     assert [{k: v for k, v in x.items() if k not in timing} for x in _csv(live / "sweep.csv")] == [
-        {k: v for k, v in x.items() if k not in timing} for x in rows[2:]]
+        {k: v for k, v in x.items() if k not in timing} for x in rows[4:6]]
 
 
 def test_the_dask_engine_runs_a_sweep_on_a_local_cluster_with_the_same_outputs(tmp_path: Path) -> None:
