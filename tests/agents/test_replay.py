@@ -102,6 +102,33 @@ def test_evaluate_changes_receiver_side_keys_and_refuses_sender_side_ones(per_li
     assert r.returncode == 2 and "overwritten" in r.stderr
 
 
+def test_points_replayed_in_one_pass_score_as_each_replayed_alone(per_link: tuple[Path, dict],
+                                                                   tmp_path: Path) -> None:
+    """evaluate --grid: one ego thread per point over one reading of the recording, sharing decodes and equal
+    fusions; each point's scores and comm counts are those of its own replay (and the recorded point's, the
+    live run's)."""
+    rec, live = per_link
+    out = tmp_path / "grid"
+    r = _cli("evaluate", str(rec), "--grid", "comm.drop.p=0.3,0", "--grid", "comm.latency_ms.mean=20,120",
+             "--out", str(out))
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "4 points replayed in one pass" in r.stderr
+    shared = int(r.stderr.split("points replayed in one pass in ")[1].split("; ")[1].split(" of ")[0])
+    assert shared > 0
+    got = {p.name: json.loads((p / "metrics.json").read_text()) for p in out.iterdir()}
+    assert sorted(got) == sorted(f"comm.drop.p={d}_comm.latency_ms.mean={m}" for d in ("0.3", "0")
+                                 for m in ("20", "120"))
+    assert _scores(got["comm.drop.p=0.3_comm.latency_ms.mean=20"]) == _scores(live)  # the recorded settings
+    alone = _replay(rec, tmp_path / "alone", "--set", "comm.drop.p=0", "--set", "comm.latency_ms.mean=120")
+    assert _scores(got["comm.drop.p=0_comm.latency_ms.mean=120"]) == _scores(alone)
+    assert _scores(alone) != _scores(live)
+    # a bad point is refused before any runs, naming its folder
+    r = _cli("evaluate", str(rec), "--grid", "comm.drop.p=0,0.5", "--grid", "cavs.count=2", "--out",
+             str(tmp_path / "bad"))
+    assert r.returncode == 2 and "comm.drop.p=0_cavs.count=2: cavs.count" in r.stderr and "sender-side" in r.stderr
+    assert not (tmp_path / "bad").exists()
+
+
 def test_record_messages_is_refused_in_realtime(tmp_path: Path) -> None:
     r = _cli("run", SCENARIO, "--frames", "2", "--out", str(tmp_path), "--set", "output.record_messages=true",
              "--set", "transport.clock=realtime")
