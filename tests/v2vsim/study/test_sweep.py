@@ -4,6 +4,7 @@ two-level bootstrap's coverage, per-frame values from a recording, and one real 
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import sys
 import time
@@ -327,6 +328,32 @@ def test_points_that_differ_only_in_receiver_side_keys_replay_the_first_ones_rec
     # the dask engine and the realtime clock simulate every run, saying why
     assert prepare(_args(tmp_path, "transport.clock=realtime", replay=True)).no_replay.startswith("transport.clock")
     assert prepare(_args(tmp_path)).no_replay == "--no-replay"
+
+
+def test_a_recordings_replays_run_in_as_few_processes_as_fill_the_replay_slots(tmp_path: Path) -> None:
+    """One seed, --jobs 1 (two replay slots): the 11 replays of the README grid in two processes of neighbouring
+    points; five seeds: one process per seed; --jobs 3 with one seed: six."""
+    assert runs_mod.batches_per_recording(recordings=1, replays=11, jobs=1) == 2
+    assert runs_mod.batches_per_recording(recordings=5, replays=11, jobs=1) == 1
+    assert runs_mod.batches_per_recording(recordings=1, replays=11, jobs=3) == 6
+    assert runs_mod.batches_per_recording(recordings=1, replays=1, jobs=4) == 1
+    grid = ("comm.latency_ms.mean=0,100,200,300", "comm.drop.p=0,0.1,0.3")
+    d = prepare(SweepArgs(SCENARIO, grid, "10", tmp_path / "one", frames=2, jobs=1))
+    replays = [s for s in d.specs if s.replayed]
+    assert len(replays) == 11 and [s.batch for s in replays] == [0] * 6 + [1] * 5  # contiguous, in grid order
+    d = prepare(SweepArgs(SCENARIO, grid, "10-14", tmp_path / "five", frames=2, jobs=1))
+    batches = {}
+    for s in d.specs:
+        if s.replayed:
+            batches.setdefault((s.recording, s.batch), set()).add(s.seed)
+    assert len(batches) == 5 and all(len(seeds) == 1 for seeds in batches.values())
+    lead = next(s for s in d.specs if s.replayed)
+    rest = tuple(s for s in d.specs if s.replayed and s.batch == lead.batch and s is not lead)
+    together = dataclasses.replace(lead, together=rest)
+    argv = together.argv(d.scenario)
+    assert argv[:5] == ["-m", "v2vsim.cli", "evaluate", str(lead.recording), "--plan"] and argv[-2:] == ["--frames", "2"]
+    assert [x["out"] for x in together.plan_doc()] == [str(s.out) for s in (lead, *rest)]
+    assert together.plan_doc()[1]["overrides"] == rest[0].request["overrides"]
 
 
 def test_a_replay_waits_for_its_recording_and_fails_with_it(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
