@@ -351,7 +351,8 @@ def test_a_recordings_replays_run_in_as_few_processes_as_fill_the_replay_slots(t
     rest = tuple(s for s in d.specs if s.replayed and s.batch == lead.batch and s is not lead)
     together = dataclasses.replace(lead, together=rest)
     argv = together.argv(d.scenario)
-    assert argv[:5] == ["-m", "v2vsim.cli", "evaluate", str(lead.recording), "--plan"] and argv[-2:] == ["--frames", "2"]
+    assert argv[:5] == ["-m", "v2vsim.cli", "evaluate", str(lead.recording), "--plan"]
+    assert argv[-2:] == ["--frames", "2"]
     assert [x["out"] for x in together.plan_doc()] == [str(s.out) for s in (lead, *rest)]
     assert together.plan_doc()[1]["overrides"] == rest[0].request["overrides"]
 
