@@ -100,7 +100,9 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None) -> int:
     extrapolations = {m: e for m in models if sc.comm.compensation and (e := build_extrapolation(sc, m)) is not None}
     static_bytes = bus.fetch("static", "main", START_TIMEOUT_S)
     static = static_from_bytes(static_bytes)
-    assets = build_map_assets(static)
+    # the map rasters for the ground truth: one set for every replay of a recording in this process
+    assets = (build_map_assets(static) if replay is None
+              else replay.once_per_recording("map_assets", partial(build_map_assets, static)))
     c, f = encoder.out_channels, encoder.out_cells
     compressor, ratio = build_compressor(sc, c), wire_ratio(sc)
     decoder = EgoDecoder(ego_wire_spec(sc, c, f, ratio), args.run_id, frozenset(args.cavs), key)

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import hashlib
 import threading
+from collections import Counter
 from collections.abc import Callable, Hashable, Iterator
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
@@ -61,8 +62,10 @@ class ReplayShare:
         self._memo: dict[tuple[int, Hashable], _Slot] = {}
         self._cond = threading.Condition()
         self._stopped = False
-        self.hits = 0  # memo lookups answered by another consumer's work (the sweep's log says how many)
-        self.lookups = 0
+        # memo lookups by what they are for (key[0]: decode, world, ground_truth, prediction), and of those how many
+        # another consumer's work answered (evaluate's last line says)
+        self.lookups: Counter[str] = Counter()
+        self.hits: Counter[str] = Counter()
 
     def take(self, consumer: int, index: int) -> tuple[int, RecordedFrame] | None:
         """The `index`-th recorded frame (0, 1, ...), or None past the last; waits while this consumer is
@@ -98,15 +101,16 @@ class ReplayShare:
 
     def once(self, frame: int, key: Hashable, compute: Callable[[], T]) -> T:
         """compute() for (frame, key) by the first consumer that asks; the others wait for it and get the same
-        object. An exception is raised in every consumer that asks."""
+        object. An exception is raised in every consumer that asks. Frame -1: kept for the whole recording."""
+        what = str(key[0]) if isinstance(key, tuple) else str(key)
         with self._cond:
-            self.lookups += 1
+            self.lookups[what] += 1
             slot = self._memo.get((frame, key))
             owner = slot is None
             if slot is None:
                 slot = self._memo[(frame, key)] = _Slot()
             else:
-                self.hits += 1
+                self.hits[what] += 1
         if owner:
             try:
                 slot.value = compute()
@@ -166,6 +170,10 @@ class ReplayBus:
             return compute()
         return self.share.once(self._current, key, compute)
 
+    def once_per_recording(self, key: Hashable, compute: Callable[[], T]) -> T:
+        """compute(), shared with the other replays of this process for the whole recording (never dropped)."""
+        return compute() if self.share is None else self.share.once(-1, key, compute)
+
     def decoder(self, decoder: EgoDecoder, tag: str) -> EgoDecoder:
         """`decoder` whose decodes are shared with the other replays (counting stays per replay); `tag` tells
         decoders of different wire specs apart."""
@@ -189,7 +197,7 @@ class ReplayBus:
         got = self._model_ids.get(id(model))
         if got is None:
             h = hashlib.sha1(f"{type(model).__qualname__} {getattr(model, 'bev_size_m', None)} {model!r}".encode())
-            for name, t in model.state_dict().items():
+            for name, t in [*model.named_parameters(), *model.named_buffers()]:  # non-persistent buffers too
                 h.update(name.encode())
                 h.update(str(t.dtype).encode() + str(tuple(t.shape)).encode())
                 h.update(t.detach().reshape(-1).contiguous().view(torch.uint8).numpy().tobytes())

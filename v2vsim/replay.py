@@ -131,9 +131,10 @@ def _replay_together(rec: Recording, runs: list[AgentArgs], frames: int, labels:
         for t in threads:
             t.join()
         return 130
-    print(f"v2vsim evaluate: {len(runs)} points replayed in one pass in {time.monotonic() - t0:.1f} s; "
-          f"{share.hits} of {share.lookups} decodes, worlds, ground truths and predictions were shared",
-          file=sys.stderr)
+    names = {"ground_truth": "ground truths", "map_assets": "map rasters"}
+    shared = ", ".join(f"{share.hits[w]} of {n} {names.get(w, w + 's')}" for w, n in sorted(share.lookups.items()))
+    print(f"v2vsim evaluate: {len(runs)} points replayed in one pass in {time.monotonic() - t0:.1f} s; computed "
+          f"once and shared: {shared}", file=sys.stderr)
     return max(codes)
 
 

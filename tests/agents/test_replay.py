@@ -113,8 +113,10 @@ def test_points_replayed_in_one_pass_score_as_each_replayed_alone(per_link: tupl
              "--out", str(out))
     assert r.returncode == 0, r.stderr[-3000:]
     assert "4 points replayed in one pass" in r.stderr
-    shared = int(r.stderr.split("points replayed in one pass in ")[1].split("; ")[1].split(" of ")[0])
-    assert shared > 0
+    shared = r.stderr.split("computed once and shared: ")[1].splitlines()[0]  # "N of M decodes, ..., K of L worlds"
+    counts = {part.split(" ", 3)[3]: (int(part.split()[0]), int(part.split()[2])) for part in shared.split(", ")}
+    assert counts["worlds"] == (3 * 6, 4 * 6) and counts["ground truths"] == (3 * 6, 4 * 6)
+    assert 0 < counts["predictions"][0] < counts["predictions"][1]
     got = {p.name: json.loads((p / "metrics.json").read_text()) for p in out.iterdir()}
     assert sorted(got) == sorted(f"comm.drop.p={d}_comm.latency_ms.mean={m}" for d in ("0.3", "0")
                                  for m in ("20", "120"))

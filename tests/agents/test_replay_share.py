@@ -61,7 +61,7 @@ def test_frames_are_read_once_work_is_shared_and_old_frames_are_dropped() -> Non
         t.join(30)
     assert seen == [list(range(12))] * 3
     assert rec.reads == 12 and all(n == 1 for n in calls.values()) and len(calls) == 12
-    assert share.lookups == 36 and share.hits == 24
+    assert share.lookups == {"square": 36} and share.hits == {"square": 24}
     assert max(kept) <= ReplayShare.AHEAD + 2  # a replay runs at most AHEAD frames past the slowest
     assert not share._memo and not share._read  # everything dropped once every replay has passed it
 

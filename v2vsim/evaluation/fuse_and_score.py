@@ -42,11 +42,13 @@ def predict_all(models: dict[str, nn.Module], inp: FusionInputs, cells: int,
     """Every method's prediction for one frame (methods without input are left out). With `memo`, a prediction
     from the same model and fusion inputs (fusion_key) is taken from it; its `ms` is that computation's."""
     preds = {}
+    digests: dict[int, bytes] = {}  # each input array hashed once for every method's fusion_key
     for m, model in models.items():
         if memo is None:
             pred = predict(m, model, inp, cells, precision)
         else:
-            pred = memo(m, model, fusion_key(m, inp), lambda m=m, model=model: predict(m, model, inp, cells, precision))
+            pred = memo(m, model, fusion_key(m, inp, digests),
+                        lambda m=m, model=model: predict(m, model, inp, cells, precision))
         if pred is not None:
             preds[m] = pred
     return preds

@@ -118,26 +118,37 @@ class ApAccumulator:
                             np.asarray(gt_boxes, dtype=np.float64).reshape(-1, 5)))
 
     def ap(self, iou_threshold: float, iou_fn: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> float | None:
+        return self.aps((iou_threshold,), iou_fn)[0]
+
+    def aps(self, thresholds: Sequence[float], iou_fn: Callable[[np.ndarray, np.ndarray], np.ndarray]
+            ) -> list[float | None]:
+        """AP at each IoU threshold; each frame's IoU matrix (the costly part: rotated boxes) is computed once."""
         n_gt = sum(len(g) for _, _, g in self.frames)
         if n_gt == 0:
-            return None
-        scores, hits = [], []
+            return [None] * len(thresholds)
+        scores: list[float] = []
+        hits: list[list[bool]] = [[] for _ in thresholds]
         for det, sc, gt in self.frames:
             if len(det) == 0:
                 continue
             order = np.argsort(-sc, kind="stable")
             det, sc = det[order], sc[order]
-            taken = np.zeros(len(gt), dtype=bool)
             ious = iou_fn(det, gt) if len(gt) else np.zeros((len(det), 0))
-            for k in range(len(det)):
-                hit = False
-                if ious.shape[1]:
-                    cand = np.where(taken, -1.0, ious[k])
-                    j = int(np.argmax(cand))
-                    if cand[j] >= iou_threshold:
-                        taken[j] = hit = True
-                scores.append(sc[k])
-                hits.append(hit)
+            scores.extend(sc)
+            for t, threshold in enumerate(thresholds):
+                taken = np.zeros(len(gt), dtype=bool)
+                for k in range(len(det)):
+                    hit = False
+                    if ious.shape[1]:
+                        cand = np.where(taken, -1.0, ious[k])
+                        j = int(np.argmax(cand))
+                        if cand[j] >= threshold:
+                            taken[j] = hit = True
+                    hits[t].append(hit)
+        return [self._ap(scores, h, n_gt) for h in hits]
+
+    def _ap(self, scores: list[float], hits: list[bool], n_gt: int) -> float:
+        """All-point interpolated AP of detections in frame order, `hits` marking the true positives."""
         if not scores:
             return 0.0
         hits_arr = np.asarray(hits)
@@ -203,7 +214,7 @@ class MethodScore:
 
         ap50 = ap70 = None
         if self.boxes is not None and iou_fn is not None:
-            ap50, ap70 = self.boxes.ap(0.5, iou_fn), self.boxes.ap(0.7, iou_fn)
+            ap50, ap70 = self.boxes.aps((0.5, 0.7), iou_fn)
         return {
             "iou_vehicle": r(self.vehicle.iou),
             "iou_vehicle_frame_mean": r(self.vehicle.frame_mean),

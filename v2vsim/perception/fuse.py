@@ -62,19 +62,28 @@ def _poses(inp: FusionInputs, names: list[str], kind: str) -> Tensor:
     return torch.from_numpy(inp.poses_by_kind.get(kind, inp.rel_poses)[idx]).float()
 
 
-def fusion_key(method: str, inp: FusionInputs) -> bytes:
+def fusion_key(method: str, inp: FusionInputs, digests: dict[int, bytes] | None = None) -> bytes:
     """A digest of exactly what predict(method, ...) reads of `inp` (the same selection, in the same order):
     two FusionInputs with the same key give that method the same prediction from the same model. Replays of one
-    recording in one process share predictions by it (agents.ego_replay.ReplayShare)."""
+    recording in one process share predictions by it (agents.ego_replay.ReplayShare). `digests`: each array's
+    own digest by id(), kept by the caller across the methods of one frame (the arrays must stay alive)."""
     h = hashlib.sha1(method.encode())
     ego = inp.senders[0]
+    known = {} if digests is None else digests
 
-    def add(name: str, *arrays: np.ndarray) -> None:
+    def add(name: str, *arrays: np.ndarray, held: bool = True) -> None:
+        """`held`: arrays `inp` holds (their id() stays theirs while it lives), not temporaries."""
         h.update(name.encode())
         for a in arrays:
-            a = np.ascontiguousarray(a)
-            h.update(f"{a.dtype}{a.shape}".encode())
-            h.update(a.data)
+            d = known.get(id(a)) if held else None
+            if d is None:
+                c = np.ascontiguousarray(a)
+                one = hashlib.sha1(f"{c.dtype}{c.shape}".encode())
+                one.update(c.data)
+                d = one.digest()
+                if held:
+                    known[id(a)] = d
+            h.update(d)
 
     def poses(names: list[str], kind: str) -> np.ndarray:
         return inp.poses_by_kind.get(kind, inp.rel_poses)[[inp.senders.index(s) for s in names]]
@@ -95,7 +104,7 @@ def fusion_key(method: str, inp: FusionInputs) -> bytes:
         v = table[s]
         add(s, *(v if isinstance(v, tuple) else (v,)))
     if kind:
-        add("poses", poses(names, kind))
+        add("poses", poses(names, kind), held=False)
     return h.digest()
 
 

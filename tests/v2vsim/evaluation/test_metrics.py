@@ -48,6 +48,24 @@ def test_ap_global_and_per_frame_sorting_differ_as_computed_by_hand() -> None:
     assert acc.ap(0.5, _centre_iou) == pytest.approx(5 / 6)
 
 
+def test_several_thresholds_at_once_equal_each_alone_and_compute_each_iou_matrix_once() -> None:
+    rng = np.random.default_rng(0)
+    acc = ApAccumulator()
+    for _ in range(6):
+        n, g = int(rng.integers(0, 6)), int(rng.integers(0, 4))
+        acc.add(np.array([_box(float(x)) for x in rng.uniform(0, 30, n)]).reshape(-1, 5), rng.uniform(size=n),
+                np.array([_box(float(x)) for x in rng.uniform(0, 30, g)]).reshape(-1, 5))
+    calls = []
+
+    def soft_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        calls.append(1)
+        return np.exp(-np.abs(a[:, None, 0] - b[None, :, 0]))
+
+    both = acc.aps((0.5, 0.7), soft_iou)
+    assert len(calls) == sum(len(d) > 0 and len(g) > 0 for d, _, g in acc.frames)
+    assert both == [acc.ap(0.5, soft_iou), acc.ap(0.7, soft_iou)] and both[0] >= both[1]
+
+
 def test_ap_sortings_agree_when_frame_order_is_score_order() -> None:
     acc = {s: ApAccumulator(sort=s) for s in ("global", "per_frame")}
     for a in acc.values():
