@@ -224,7 +224,7 @@ def batches_per_recording(recordings: int, replays: int, jobs: int) -> int:
 
 def _batched(specs: list[RunSpec], jobs: int) -> list[RunSpec]:
     """Number each replay's batch: its recording's replays, in grid order, cut into contiguous runs of points
-    (neighbouring points share the most fusion inputs)."""
+    (neighbouring points share the most fusion inputs) at the grid's coarsest boundaries (cut_points)."""
     by_recording: dict[Path, list[int]] = {}
     for i, s in enumerate(specs):
         if s.recording is not None:
@@ -233,11 +233,28 @@ def _batched(specs: list[RunSpec], jobs: int) -> list[RunSpec]:
     batch = 0
     for idx in by_recording.values():
         n = batches_per_recording(len(by_recording), len(idx), jobs)
-        size = -(-len(idx) // n)
+        cuts = cut_points([specs[i].point.texts for i in idx], n)
         for j, i in enumerate(idx):
-            out[i] = dataclasses.replace(specs[i], batch=batch + j // size)
+            out[i] = dataclasses.replace(specs[i], batch=batch + sum(j >= c for c in cuts))
         batch += n
     return out
+
+
+def cut_points(texts: Sequence[tuple[str, ...]], n: int) -> list[int]:
+    """Where to cut a list of grid points (their values, in grid order) into n contiguous batches of about equal
+    size: near each equal-size cut, the position where the earliest axis changes value (between two latencies
+    rather than two loss levels of one latency: points of one latency share fusions, across latencies hardly)."""
+    def strength(p: int) -> int:  # the earliest axis whose value changes between points p-1 and p
+        return next((a for a, (x, y) in enumerate(zip(texts[p - 1], texts[p], strict=True)) if x != y), len(texts[0]))
+
+    cuts: list[int] = []
+    size = len(texts) / n
+    for i in range(1, n):
+        target = round(i * size)
+        lo = max(cuts[-1] + 1 if cuts else 1, round(target - size / 2))
+        hi = min(len(texts) - (n - i), round(target + size / 2))
+        cuts.append(min(range(lo, hi + 1), key=lambda p: (strength(p), abs(p - target))) if lo <= hi else target)
+    return cuts
 
 
 def read_metrics(run_dir: Path) -> dict | None:

@@ -340,7 +340,10 @@ def test_a_recordings_replays_run_in_as_few_processes_as_fill_the_replay_slots(t
     grid = ("comm.latency_ms.mean=0,100,200,300", "comm.drop.p=0,0.1,0.3")
     d = prepare(SweepArgs(SCENARIO, grid, "10", tmp_path / "one", frames=2, jobs=1))
     replays = [s for s in d.specs if s.replayed]
-    assert len(replays) == 11 and [s.batch for s in replays] == [0] * 6 + [1] * 5  # contiguous, in grid order
+    # contiguous in grid order, cut between two latencies (0 and 100 | 200 and 300), not inside one
+    assert len(replays) == 11 and [s.batch for s in replays] == [0] * 5 + [1] * 6
+    assert runs_mod.cut_points([(lat, p) for lat in "abcd" for p in "xyz"][1:], 3) == [5, 8]
+    assert runs_mod.cut_points([("a",)] * 5, 2) == [2]  # one value: equal halves
     d = prepare(SweepArgs(SCENARIO, grid, "10-14", tmp_path / "five", frames=2, jobs=1))
     batches = {}
     for s in d.specs:
