@@ -23,6 +23,7 @@ from collections.abc import Callable, Hashable, Iterator
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -165,10 +166,11 @@ class ReplayBus:
         self._box = box
 
     def once(self, key: Hashable, compute: Callable[[], T]) -> T:
-        """compute(), shared with the other replays of this process for the frame being worked on."""
+        """compute(), shared with the other replays of this process for the frame being worked on (its arrays made
+        read-only: read_only)."""
         if self.share is None:
             return compute()
-        return self.share.once(self._current, key, compute)
+        return self.share.once(self._current, key, lambda: read_only(compute()))
 
     def once_per_recording(self, key: Hashable, compute: Callable[[], T]) -> T:
         """compute(), shared with the other replays of this process for the whole recording (never dropped)."""
@@ -270,6 +272,23 @@ class ReplayBus:
         self._subs["world"]("main", frame.world)
 
 
+def read_only(value: T) -> T:
+    """`value` with every numpy array in it (in dicts, tuples, lists, a Prediction) made read-only: what replays
+    share, none of them may change (a write raises instead of corrupting the others' results)."""
+    if isinstance(value, np.ndarray):
+        value.flags.writeable = False
+    elif isinstance(value, dict):
+        for v in value.values():
+            read_only(v)
+    elif isinstance(value, (tuple, list)):
+        for v in value:
+            read_only(v)
+    elif isinstance(value, Prediction):
+        read_only(value.probs)
+        read_only(value.boxes)
+    return value
+
+
 class _SharedDecoder:
     """An EgoDecoder whose decode of given bytes is done once for all replays of a process (it depends on the
     bytes, the sender and the recording's wire spec only); each replay still counts its own rejections."""
@@ -299,8 +318,6 @@ def _decode_or_reason(decoder: EgoDecoder, kind: str, data: bytes, sender: str |
         msg = decoder.decode(kind, data, sender, verified=verified)
     except RejectedMessage as e:
         return e
-    # shared by every replay of the process: what reads it must not write it
-    for a in (msg.payload, *msg.extras.values()):
-        a.flags.writeable = False
+    read_only([msg.payload, *msg.extras.values()])  # shared by every replay of the process
     return msg
 

@@ -109,6 +109,35 @@ def rotated_iou_matrix(a: Tensor, b: Tensor, chunk: int = 65536) -> Tensor:
     return out
 
 
+def rotated_iou_matrices(pairs: list[tuple[Tensor, Tensor]], chunk: int = 65536) -> list[Tensor]:
+    """rotated_iou_matrix of many (a [N_i, 5], b [M_i, 5]) pairs at once -> [N_i, M_i] each: the candidate pairs of
+    all of them go through rotated_iou_pairs together, so a run's AP over hundreds of frames pays its many small
+    tensor operations once rather than once a frame."""
+    outs, ii, jj, ia, jb = [], [], [], [], []
+    for n, (a, b) in enumerate(pairs):
+        a, b = a[:, :5], b[:, :5]
+        outs.append(a.new_zeros(a.shape[0], b.shape[0]))
+        if a.shape[0] == 0 or b.shape[0] == 0:
+            continue
+        ra = 0.5 * torch.hypot(a[:, 2], a[:, 3])  # [N]
+        rb = 0.5 * torch.hypot(b[:, 2], b[:, 3])  # [M]
+        dist = torch.cdist(a[:, :2].double(), b[:, :2].double())  # [N, M]
+        i, j = torch.nonzero(dist <= (ra[:, None] + rb[None, :]).double() + 1e-6, as_tuple=True)
+        ii.append(torch.full_like(i, n))
+        jj.append(i * b.shape[0] + j)  # flat index into the pair's output
+        ia.append(a[i])
+        jb.append(b[j])
+    if not ii:
+        return outs
+    which, flat, boxes_a, boxes_b = torch.cat(ii), torch.cat(jj), torch.cat(ia), torch.cat(jb)
+    iou = torch.cat([rotated_iou_pairs(boxes_a[s : s + chunk], boxes_b[s : s + chunk])
+                     for s in range(0, boxes_a.shape[0], chunk)])
+    for n in torch.unique(which).tolist():
+        sel = which == n
+        outs[n].view(-1)[flat[sel]] = iou[sel].to(outs[n].dtype)
+    return outs
+
+
 def rotated_nms(boxes: Tensor, scores: Tensor, iou_threshold: float, max_out: int | None = None) -> Tensor:
     """Greedy rotated NMS: boxes [N, >=5], scores [N] -> kept indices [K] by descending score.
 

@@ -8,7 +8,7 @@ import pytest
 import torch
 from shapely.geometry import Polygon
 
-from models.nms import box_corners, rotated_iou_matrix, rotated_iou_pairs, rotated_nms
+from models.nms import box_corners, rotated_iou_matrices, rotated_iou_matrix, rotated_iou_pairs, rotated_nms
 
 
 def test_known_ious() -> None:
@@ -66,3 +66,22 @@ def test_nms_suppresses_duplicates_and_keeps_separate_boxes() -> None:
     keep = rotated_nms(boxes, scores, iou_threshold=0.3)
     assert keep.tolist() == [0, 3, 4]
     assert rotated_nms(boxes, scores, 0.3, max_out=2).tolist() == [0, 3]
+
+
+def test_many_matrices_at_once_equal_each_alone() -> None:
+    """rotated_iou_matrices (a run's AP: every frame's candidate pairs in one pass) against rotated_iou_matrix per
+    frame, with empty frames and frames without overlaps among them."""
+    g = torch.Generator().manual_seed(5)
+
+    def boxes(n: int, spread: float) -> torch.Tensor:
+        xy = torch.rand(n, 2, generator=g) * spread
+        lw = torch.rand(n, 2, generator=g) * 3 + 1
+        return torch.cat([xy, lw, torch.rand(n, 1, generator=g) * 6.3], dim=1)
+
+    pairs = [(boxes(n, s), boxes(m, s)) for n, m, s in ((7, 5, 10.0), (0, 3, 10.0), (4, 0, 10.0), (6, 6, 400.0),
+                                                         (30, 12, 20.0), (1, 1, 1.0))]
+    many = rotated_iou_matrices(pairs, chunk=16)  # several chunks
+    assert [tuple(m.shape) for m in many] == [(a.shape[0], b.shape[0]) for a, b in pairs]
+    for (a, b), m in zip(pairs, many, strict=True):
+        assert torch.allclose(m, rotated_iou_matrix(a, b), atol=1e-6)
+    assert many[4].max() > 0 and rotated_iou_matrices([]) == []

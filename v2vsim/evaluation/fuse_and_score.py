@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from models.nms import rotated_iou_matrix
+from models.nms import rotated_iou_matrices, rotated_iou_matrix
 from v2vsim.evaluation.metrics import MethodScore
 from v2vsim.perception.fuse import FusionInputs, Prediction, fusion_key, predict
 from v2vsim.perception.precision import Precision
@@ -68,5 +68,15 @@ def score_all(preds: dict[str, Prediction], gt: dict[str, np.ndarray], boxes_gt:
 
 
 def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Rotated BEV IoU matrix of (x, y, l, w, yaw) boxes, the IoU that AP is scored with."""
+    """Rotated BEV IoU matrix of (x, y, l, w, yaw) boxes, the IoU that AP is scored with. `box_iou.many` (below):
+    the same for many pairs at once, which ApAccumulator.aps uses."""
     return rotated_iou_matrix(torch.from_numpy(a).float(), torch.from_numpy(b).float()).numpy()
+
+
+def box_ious(pairs: list[tuple[np.ndarray, np.ndarray]]) -> list[np.ndarray]:
+    """box_iou of every (a, b) pair, computed together (models.nms.rotated_iou_matrices)."""
+    return [m.numpy() for m in rotated_iou_matrices([(torch.from_numpy(a).float(), torch.from_numpy(b).float())
+                                                     for a, b in pairs])]
+
+
+box_iou.many = box_ious  # type: ignore[attr-defined]

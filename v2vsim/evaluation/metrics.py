@@ -122,18 +122,23 @@ class ApAccumulator:
 
     def aps(self, thresholds: Sequence[float], iou_fn: Callable[[np.ndarray, np.ndarray], np.ndarray]
             ) -> list[float | None]:
-        """AP at each IoU threshold; each frame's IoU matrix (the costly part: rotated boxes) is computed once."""
+        """AP at each IoU threshold; each frame's IoU matrix (the costly part: rotated boxes) is computed once, and
+        every frame's at once when `iou_fn` has a batched form `iou_fn.many(pairs) -> matrices`."""
         n_gt = sum(len(g) for _, _, g in self.frames)
         if n_gt == 0:
             return [None] * len(thresholds)
+        ranked = []
+        for det, sc, gt in self.frames:
+            if len(det):
+                order = np.argsort(-sc, kind="stable")
+                ranked.append((det[order], sc[order], gt))
+        many = getattr(iou_fn, "many", None)
+        with_gt = [(d, g) for d, _, g in ranked if len(g)]
+        matrices = iter(many(with_gt) if many is not None else [iou_fn(d, g) for d, g in with_gt])
         scores: list[float] = []
         hits: list[list[bool]] = [[] for _ in thresholds]
-        for det, sc, gt in self.frames:
-            if len(det) == 0:
-                continue
-            order = np.argsort(-sc, kind="stable")
-            det, sc = det[order], sc[order]
-            ious = iou_fn(det, gt) if len(gt) else np.zeros((len(det), 0))
+        for det, sc, gt in ranked:
+            ious = next(matrices) if len(gt) else np.zeros((len(det), 0))
             scores.extend(sc)
             for t, threshold in enumerate(thresholds):
                 taken = np.zeros(len(gt), dtype=bool)
