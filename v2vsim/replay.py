@@ -38,6 +38,15 @@ def receiver_side(key: str) -> bool:
     return any(key == r or key.startswith(r + ".") for r in RECEIVER_SIDE)
 
 
+def _same_file(path: str, sha256: str) -> bool:
+    from v2vsim.recording.messages import file_sha256
+
+    try:
+        return file_sha256(Path(path)) == sha256
+    except OSError:
+        return False
+
+
 def _needed_kinds(methods: tuple[str, ...], lidar: bool) -> list[str]:
     """The V2V kinds the ego takes for these methods (agents.ego.ego_loop)."""
     return ["features"] + (["points"] if "early" in methods and lidar else []) + (
@@ -146,15 +155,21 @@ def _prepare(rec: Recording, recording: Path, overrides: list[str], out: Path, f
 
     h = rec.header
     source = Path(h["scenario"]["source"])
-    if not source.exists():
+    files = h["scenario"].get("files", {})  # {key: {"name", "sha256"}}: the copies in files/
+    copies = []
+    if not source.exists():  # moved: the recording's own copies of the scenario and the files it names
         source = rec.folder / "scenario.yaml"
-    sc = load_scenario(source, [*h["scenario"]["overrides"], *overrides])
+        copies = [f"{key}={rec.folder / 'files' / f['name']}" for key, f in files.items()
+                  if (rec.folder / "files" / f["name"]).is_file()]
+    sc = load_scenario(source, [*h["scenario"]["overrides"], *copies, *overrides])
     sc = dataclasses.replace(sc, output=dataclasses.replace(sc.output, record_messages=False))
     before, now = h["scenario"]["resolved"], resolved_keys(sc)
     defaults = resolved_keys(Scenario())  # a key added since the recording was made: it ran with the default
     for key in sorted(set(before) | set(now)):
         if key in ("output.record_messages",) or receiver_side(key):
             continue
+        if key in files and now.get(key) and _same_file(now[key], files[key]["sha256"]):
+            continue  # the same road network or buildings, elsewhere
         if before.get(key, defaults.get(key)) != now.get(key):
             raise ConfigError(f"{key}: {now.get(key)!r} differs from the recording's {before.get(key)!r}; it is a "
                               "sender-side key (it changes what the CAVs sent): record a new run for it")

@@ -131,6 +131,29 @@ def test_points_replayed_in_one_pass_score_as_each_replayed_alone(per_link: tupl
     assert not (tmp_path / "bad").exists()
 
 
+def test_a_recording_moved_where_its_scenario_is_gone_still_replays(per_link: tuple[Path, dict],
+                                                                     tmp_path: Path) -> None:
+    """Another machine: the recorded scenario path does not exist. evaluate reads the recording's copies of the
+    scenario and of the road network and buildings it names (files/, checked by sha256)."""
+    import shutil
+
+    rec, live = per_link
+    header = json.loads((rec / "messages" / "header.json").read_text())
+    files = header["scenario"]["files"]
+    assert set(files) == {"traffic.net", "traffic.buildings"}
+    for f in files.values():
+        assert (rec / "messages" / "files" / f["name"]).is_file() and len(f["sha256"]) == 64
+    moved = tmp_path / "elsewhere" / "messages"
+    shutil.copytree(rec / "messages", moved)
+    header["scenario"]["source"] = str(tmp_path / "gone" / "intersection.yaml")
+    (moved / "header.json").write_text(json.dumps(header))
+    assert _scores(_replay(moved, tmp_path / "replay")) == _scores(live)
+    # a network that is not the recorded one is still a sender-side change
+    (moved / "files" / files["traffic.net"]["name"]).write_text("<net/>")
+    r = _cli("evaluate", str(moved), "--out", str(tmp_path / "bad"))
+    assert r.returncode == 2 and "traffic.net" in r.stderr, r.stderr
+
+
 def test_record_messages_is_refused_in_realtime(tmp_path: Path) -> None:
     r = _cli("run", SCENARIO, "--frames", "2", "--out", str(tmp_path), "--set", "output.record_messages=true",
              "--set", "transport.clock=realtime")

@@ -10,6 +10,8 @@ Format "v2vsim.messages" version 1, a folder `messages/` beside the ego's metric
   again at every new chunk (status "running"), then when the run ends; a run killed mid-way (SIGKILL, power)
   leaves status "running" and its chunks up to the last whole frame, which `evaluate` replays, saying so.
 - scenario.yaml: the scenario file the run read (a copy; evaluate reads it where the original is gone).
+- files/: copies of the files the scenario names (traffic.net, traffic.buildings: SCENARIO_FILES), listed with
+  their sha256 in the header's "scenario" "files" {key: {"name", "sha256"}} (recordings from before lack both).
 - static.bin: the static map bytes the driver served (v2vsim.world.serialize).
 - chunk_NNNNNN.bin: frames [N*chunk_frames, (N+1)*chunk_frames): b"V2VM" + u16 version, then one block per
   frame: u32 frame, u32 length, then that many bytes of zlib (level 1) over the frame's records, each u8 kind
@@ -24,6 +26,7 @@ Format "v2vsim.messages" version 1, a folder `messages/` beside the ego's metric
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import queue
 import shutil
@@ -60,6 +63,16 @@ def resolved_keys(sc: Any) -> dict[str, Any]:
     return out
 
 
+# Scenario keys naming files the run read, copied into the recording's files/ with their sha256: where the recorded
+# paths are gone (a recording moved to another machine), evaluate loads the copies, and a path that differs from
+# the recorded one counts as the same key when the file's content is the same. Never comm.auth.key_file (a secret).
+SCENARIO_FILES = ("traffic.net", "traffic.buildings")
+
+
+def file_sha256(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
 class MessageTape:
     """Writes a recording while the ego runs (lockstep: collect() is deterministic per frame)."""
 
@@ -74,11 +87,23 @@ class MessageTape:
             shutil.copyfile(sc.source, folder / "scenario.yaml")
         except OSError:
             pass
+        resolved = resolved_keys(sc)
+        files = {}
+        for key in SCENARIO_FILES:  # the road network and buildings, so that a moved recording still replays
+            if resolved.get(key):
+                src = Path(resolved[key])
+                try:
+                    (folder / "files").mkdir(exist_ok=True)
+                    shutil.copyfile(src, folder / "files" / src.name)
+                    files[key] = {"name": src.name, "sha256": file_sha256(src)}
+                except OSError:
+                    pass
         self.header: dict[str, Any] = {
             "format": FORMAT, "version": VERSION, "run_id": run_id, "ego": ego, "cavs": list(cavs),
             "frames_requested": frames, "frames": 0, "chunk_frames": CHUNK_FRAMES, "chunks": [],
             "kinds": list(kinds), "side": list(side),
-            "scenario": {"source": sc.source, "overrides": list(sc.overrides), "resolved": resolved_keys(sc)},
+            "scenario": {"source": sc.source, "overrides": list(sc.overrides), "resolved": resolved,
+                         "files": files},
             "lost_agents": {}, "control_rejections": [], "status": "running"}
         self._file: Any = None
         self._chunk = -1
