@@ -70,13 +70,17 @@ def score_all(preds: dict[str, Prediction], gt: dict[str, np.ndarray], boxes_gt:
 def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Rotated BEV IoU matrix of (x, y, l, w, yaw) boxes, the IoU that AP is scored with. `box_iou.many` (below):
     the same for many pairs at once, which ApAccumulator.aps uses."""
-    return rotated_iou_matrix(torch.from_numpy(a).float(), torch.from_numpy(b).float()).numpy()
+    return rotated_iou_matrix(_boxes(a), _boxes(b)).numpy()
 
 
 def box_ious(pairs: list[tuple[np.ndarray, np.ndarray]]) -> list[np.ndarray]:
     """box_iou of every (a, b) pair, computed together (models.nms.rotated_iou_matrices)."""
-    return [m.numpy() for m in rotated_iou_matrices([(torch.from_numpy(a).float(), torch.from_numpy(b).float())
-                                                     for a, b in pairs])]
+    return [m.numpy() for m in rotated_iou_matrices([(_boxes(a), _boxes(b)) for a, b in pairs])]
+
+
+def _boxes(a: np.ndarray) -> torch.Tensor:
+    """float32 copy of a box array (which may be read-only: a replay shares its predictions and ground truth)."""
+    return torch.tensor(a, dtype=torch.float32)
 
 
 box_iou.many = box_ious  # type: ignore[attr-defined]
