@@ -51,9 +51,7 @@ class ReplayShare:
 
     AHEAD = 4
 
-    def __init__(self, recording: Recording, frames: int, consumers: int) -> None:
-        self.recording = recording
-        self.frames = frames
+    def __init__(self, recording: Recording, consumers: int) -> None:
         self._it: Iterator[tuple[int, RecordedFrame]] = recording.frames()
         self._read: list[tuple[int, RecordedFrame]] = []  # [(k, frame)] not yet finished by every consumer
         self._base = 0  # index into the recording's frame sequence of self._read[0]

@@ -88,10 +88,11 @@ def evaluate_points(recording: Path, points: Sequence[tuple[Sequence[str], Path]
     if len(set(outs)) < len(outs):
         raise ConfigError("--out: two points write to the same folder; give each its own")
     many = len(points) > 1
+    recorded = _recorded_frames(rec, recording)
     plans = []
     for overrides, out in points:
         try:
-            plans.append(_prepare(rec, recording, list(overrides), out, frames))
+            plans.append(_prepare(rec, recorded, list(overrides), out, frames))
         except ConfigError as e:
             raise ConfigError(f"{out}: {e}" if many else str(e)) from None
     if not many:
@@ -112,7 +113,7 @@ def _replay_together(rec: Recording, runs: list[AgentArgs], frames: int, labels:
     from agents.ego import ego_loop
     from agents.ego_replay import ReplayBus, ReplayShare
 
-    share = ReplayShare(rec, frames, len(runs))
+    share = ReplayShare(rec, len(runs))
     codes = [0] * len(runs)
     t0 = time.monotonic()
 
@@ -147,10 +148,29 @@ def _replay_together(rec: Recording, runs: list[AgentArgs], frames: int, labels:
     return max(codes)
 
 
-def _prepare(rec: Recording, recording: Path, overrides: list[str], out: Path, frames: int | None
+def _recorded_frames(rec: Recording, recording: Path) -> int:
+    """How many frames the recording holds whole: those its run asked for, or, for a run killed mid-way, up to
+    its last whole frame (counted by reading it: once per evaluate, whatever the number of points)."""
+    h = rec.header
+    n = int(h["frames_requested"])
+    if rec.complete:
+        return n
+    try:
+        n = min(n, sum(1 for _ in rec.frames()))
+    except (OSError, ValueError) as e:
+        raise ConfigError(str(e)) from None
+    if n == 0:
+        raise ConfigError(f"{recording}: the recorded run ended before its first frame was recorded (status "
+                          f"{h.get('status')!r}): nothing to replay")
+    print(f"v2vsim evaluate: {recording}: the recorded run never finished (status {h.get('status')!r}: killed?); "
+          f"replaying the {n} frame(s) it recorded whole", file=sys.stderr)
+    return n
+
+
+def _prepare(rec: Recording, recorded: int, overrides: list[str], out: Path, frames: int | None
              ) -> tuple[AgentArgs, int]:
-    """One point's ego arguments and frame count, after checking that its keys are receiver-side, that the
-    recording holds what its methods need, and that --out is a new folder."""
+    """One point's ego arguments and frame count (of the `recorded` whole frames), after checking that its keys
+    are receiver-side, that the recording holds what its methods need, and that --out is a new folder."""
     from v2vsim.recording.messages import resolved_keys
 
     h = rec.header
@@ -168,9 +188,9 @@ def _prepare(rec: Recording, recording: Path, overrides: list[str], out: Path, f
     for key in sorted(set(before) | set(now)):
         if key in ("output.record_messages",) or receiver_side(key):
             continue
-        if key in files and now.get(key) and _same_file(now[key], files[key]["sha256"]):
-            continue  # the same road network or buildings, elsewhere
         if before.get(key, defaults.get(key)) != now.get(key):
+            if key in files and now.get(key) and _same_file(now[key], files[key]["sha256"]):
+                continue  # the same road network or buildings, elsewhere
             raise ConfigError(f"{key}: {now.get(key)!r} differs from the recording's {before.get(key)!r}; it is a "
                               "sender-side key (it changes what the CAVs sent): record a new run for it")
     lidar = sc.perception.modality == "lidar"
@@ -182,17 +202,7 @@ def _prepare(rec: Recording, recording: Path, overrides: list[str], out: Path, f
     if sc.output.rerun and "scan" not in h["side"]:
         raise ConfigError("output.rerun: true needs the CAVs' scans, which the recording lacks (it was recorded "
                           "with output.rerun false); use --set output.rerun=false")
-    n = int(h["frames_requested"])
-    if not rec.complete:  # killed mid-way: what it recorded, up to the last whole frame
-        try:
-            n = min(n, sum(1 for _ in rec.frames()))
-        except (OSError, ValueError) as e:
-            raise ConfigError(str(e)) from None
-        if n == 0:
-            raise ConfigError(f"{recording}: the recorded run ended before its first frame was recorded (status "
-                              f"{h.get('status')!r}): nothing to replay")
-        print(f"v2vsim evaluate: {recording}: the recorded run never finished (status {h.get('status')!r}: killed?); "
-              f"replaying the {n} frame(s) it recorded whole", file=sys.stderr)
+    n = recorded
     if frames is not None:
         if not 1 <= frames <= n:
             raise ConfigError(f"--frames {frames}: the recording has {n} frames; allowed: 1..{n}")

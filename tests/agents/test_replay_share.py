@@ -32,7 +32,7 @@ class _Recording:
 
 def test_frames_are_read_once_work_is_shared_and_old_frames_are_dropped() -> None:
     rec = _Recording(12)
-    share = ReplayShare(rec, 12, consumers=3)  # type: ignore[arg-type]
+    share = ReplayShare(rec, consumers=3)  # type: ignore[arg-type]
     calls: Counter = Counter()
     seen: list[list[int]] = [[], [], []]
     kept: list[int] = []
@@ -67,7 +67,7 @@ def test_frames_are_read_once_work_is_shared_and_old_frames_are_dropped() -> Non
 
 
 def test_an_error_reaches_every_replay_that_asks_and_stop_ends_them() -> None:
-    share = ReplayShare(_Recording(3), 3, consumers=2)  # type: ignore[arg-type]
+    share = ReplayShare(_Recording(3), consumers=2)  # type: ignore[arg-type]
     share.take(0, 0)
 
     def boom() -> int:
