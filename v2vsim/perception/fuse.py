@@ -52,14 +52,23 @@ class Prediction:
     decode_ms: float = 0.0  # of which the decoder + heads (BEV maps and boxes from the fused features)
 
 
-def _stack(inp: FusionInputs, table: dict[str, np.ndarray]) -> tuple[list[str], Tensor]:
-    names = [s for s in inp.senders if s in table]
-    return names, torch.from_numpy(np.stack([table[s] for s in names]))
-
-
 def _poses(inp: FusionInputs, names: list[str], kind: str) -> Tensor:
     idx = [inp.senders.index(s) for s in names]
     return torch.from_numpy(inp.poses_by_kind.get(kind, inp.rel_poses)[idx]).float()
+
+
+def fused_inputs(method: str, inp: FusionInputs) -> tuple[dict, str]:
+    """What `method` fuses: sender -> its payload (late: (maps, boxes); early: points; intermediate: features, or
+    their extrapolation for this method; none: the ego's own features only), and the message kind whose poses warp
+    them ("" for none: nothing is warped). predict() and fusion_key() both read through this."""
+    ego = inp.senders[0]
+    if method == "late":
+        return inp.outputs, "outputs"
+    if method == "early":
+        return inp.points, "points"
+    if method == "none" or not is_intermediate(method):
+        return ({ego: inp.features[ego]} if ego in inp.features else {}), ""
+    return {**inp.features, **inp.extrapolated.get(method, {})}, "features"
 
 
 def fusion_key(method: str, inp: FusionInputs, digests: dict[int, bytes] | None = None) -> bytes:
@@ -88,15 +97,7 @@ def fusion_key(method: str, inp: FusionInputs, digests: dict[int, bytes] | None 
     def poses(names: list[str], kind: str) -> np.ndarray:
         return inp.poses_by_kind.get(kind, inp.rel_poses)[[inp.senders.index(s) for s in names]]
 
-    if method == "late":
-        table: dict = inp.outputs
-        kind = "outputs"
-    elif method == "early":
-        table, kind = inp.points, "points"
-    elif method == "none" or not is_intermediate(method):
-        table, kind = ({ego: inp.features[ego]} if ego in inp.features else {}), ""
-    else:
-        table, kind = {**inp.features, **inp.extrapolated.get(method, {})}, "features"
+    table, kind = fused_inputs(method, inp)
     if ego not in table:
         return h.digest() + b"-"  # no input: predict returns None
     names = [s for s in inp.senders if s in table]
@@ -115,40 +116,34 @@ def predict(method: str, model: nn.Module, inp: FusionInputs, cells: int,
     (e.g. the ego's own message is missing). `precision`: the models' forward passes (v2vsim.perception.precision)."""
     ego = inp.senders[0]
     t0 = time.perf_counter()
+    table, kind = fused_inputs(method, inp)
+    if ego not in table:
+        return None
+    names = [s for s in inp.senders if s in table]
     if method == "late":
-        if ego not in inp.outputs:
-            return None
-        names = [s for s in inp.senders if s in inp.outputs]
-        maps = torch.from_numpy(np.stack([inp.outputs[s][0] for s in names]))  # [L, 3, S, S]
-        poses = _poses(inp, names, "outputs")
+        maps = torch.from_numpy(np.stack([table[s][0] for s in names]))  # [L, 3, S, S]
+        poses = _poses(inp, names, kind)
         valid = torch.ones(len(names), dtype=torch.bool)
         merged = late_fuse_probabilities(maps, poses, valid, model.bev_size_m)  # [3, S, S]
         merged = resize_logits(merged[None], cells)[0]
         probs = {k: merged[i].numpy() for i, k in enumerate(("vehicle", "road", "lane"))}
         boxes = None
         if model.heads.detection is not None:
-            per = [torch.from_numpy(inp.outputs[s][1]) for s in names]
+            per = [torch.from_numpy(table[s][1]) for s in names]
             boxes = late_fuse_boxes(per, poses, valid, extent_m=model.bev_size_m).numpy()
         return Prediction(probs, boxes, (time.perf_counter() - t0) * 1000)
     if method == "early":
-        if ego not in inp.points:
-            return None
-        names = [s for s in inp.senders if s in inp.points]
-        clouds = [torch.from_numpy(inp.points[s]) for s in names]
-        merged = merge_points_to_ego(clouds, _poses(inp, names, "points"))
+        clouds = [torch.from_numpy(table[s]) for s in names]
+        merged = merge_points_to_ego(clouds, _poses(inp, names, kind))
         with autocast(precision):
             fused = model.encoder([merged])
+    elif not kind:  # none: the ego's own map
+        fused = torch.from_numpy(table[ego])[None]
     else:
-        if ego not in inp.features:
-            return None
-        if method == "none" or not is_intermediate(method):
-            fused = torch.from_numpy(inp.features[ego])[None]
-        else:
-            table = {**inp.features, **inp.extrapolated.get(method, {})}
-            names, feats = _stack(inp, table)  # [L, C, F, F]
-            valid = torch.ones(1, len(names), dtype=torch.bool)
-            with autocast(precision):
-                fused = model.fuse(feats[None], _poses(inp, names, "features")[None], valid)
+        feats = torch.from_numpy(np.stack([table[s] for s in names]))  # [L, C, F, F]
+        valid = torch.ones(1, len(names), dtype=torch.bool)
+        with autocast(precision):
+            fused = model.fuse(feats[None], _poses(inp, names, kind)[None], valid)
     t_fused = time.perf_counter()
     out = heads_float(model, fused, precision)
     dyn, stat = resize_logits(out["dynamic"], cells), resize_logits(out["static"], cells)
