@@ -41,6 +41,8 @@ def test_every_shipped_checkpoint_matches_its_sha256_and_loads(encoder: str) -> 
         assert entry["cells"] == 64 and entry["wire_ratio"] == 8
         assert {"8", "16", "32", "64"} <= set(entry["compressors"])
         assert all(entry["compressors"][r] in entry["files"] for r in entry["compressors"])
+    else:  # the camera zoos start from the ImageNet EfficientNet-Lite0 (docs/training.md, "The image backbone")
+        assert entry["image_backbone"] == "efficientnet_lite0"
     sc = load_scenario(scenario, overrides)
     assert sc.perception.weights == "auto"
     models = build_method_models(sc, build_agent_encoder(sc), tuple(methods))
