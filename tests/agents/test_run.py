@@ -72,7 +72,21 @@ class Run:
         raise AssertionError(f"never saw frame {n}; stderr:\n{''.join(self.log)}")
 
     def finish(self, timeout: float = 300) -> int:
-        rc = self.proc.wait(timeout=timeout)
+        try:
+            rc = self.proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            # Say which processes were still alive and what the run printed, then clean up: a hang is a failure
+            # worth diagnosing from CI's log alone.
+            alive = []
+            for c in self.children():
+                try:
+                    alive.append(f"{c.pid} {' '.join(c.cmdline()[2:6])}")
+                    c.kill()
+                except psutil.Error:  # it ended meanwhile
+                    pass
+            self.proc.kill()
+            raise AssertionError(f"the run did not end within {timeout:g} s; still alive: {alive}; "
+                                 f"stderr:\n{''.join(self.log)}") from None
         time.sleep(0.2)
         return rc
 
