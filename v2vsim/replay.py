@@ -39,7 +39,7 @@ def receiver_side(key: str) -> bool:
 
 
 def _same_file(path: str, sha256: str) -> bool:
-    from v2vsim.recording.messages import file_sha256
+    from models.zoo import sha256 as file_sha256
 
     try:
         return file_sha256(Path(path)) == sha256

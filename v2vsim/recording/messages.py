@@ -26,7 +26,6 @@ Format "v2vsim.messages" version 1, a folder `messages/` beside the ego's metric
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import queue
 import shutil
@@ -38,6 +37,8 @@ from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
+
+from models.zoo import sha256  # the zoo's chunked file digest
 
 FORMAT = "v2vsim.messages"
 VERSION = 1
@@ -69,10 +70,6 @@ def resolved_keys(sc: Any) -> dict[str, Any]:
 SCENARIO_FILES = ("traffic.net", "traffic.buildings")
 
 
-def file_sha256(path: Path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
-
-
 class MessageTape:
     """Writes a recording while the ego runs (lockstep: collect() is deterministic per frame)."""
 
@@ -95,7 +92,7 @@ class MessageTape:
                 try:
                     (folder / "files").mkdir(exist_ok=True)
                     shutil.copyfile(src, folder / "files" / src.name)
-                    files[key] = {"name": src.name, "sha256": file_sha256(src)}
+                    files[key] = {"name": src.name, "sha256": sha256(src)}
                 except OSError:
                     pass
         self.header: dict[str, Any] = {
