@@ -2,7 +2,7 @@
 PYTHON ?= python3
 PIP = $(PYTHON) -m pip install --disable-pip-version-check -q
 
-.PHONY: install demo test lint bench zoo zoo-camera
+.PHONY: install demo test clean-install bench zoo zoo-camera
 
 install:
 	$(PIP) torch==2.13.0
@@ -11,9 +11,16 @@ install:
 demo: install
 	v2vsim run scenarios/intersection.yaml
 
+# deptry: every third-party import declared in pyproject.toml, every declared package imported ([tool.deptry]).
+# The suite installs the wheel into a venv that sees none of this machine's packages (tests/test_wheel.py).
 test: install
 	$(PYTHON) -m ruff check .
-	$(PYTHON) -m pytest -n 2  # pytest-xdist: two workers (a test waits on its processes much of the time)
+	$(PYTHON) -m deptry .
+	$(PYTHON) -m pytest -n 2 --dist worksteal  # two workers; an idle one takes tests queued for the other
+
+# Before a release: the README's own install steps and the wheel, each in a fresh venv without the system's packages.
+clean-install:
+	scripts/clean_install.sh
 
 bench: install
 	v2vsim bench sensors
