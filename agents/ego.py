@@ -62,7 +62,6 @@ from v2vsim.perception.build import (
 from v2vsim.perception.extrapolate import extrapolate_features
 from v2vsim.perception.precision import resolve as resolve_precision
 from v2vsim.recording.messages import MessageTape
-from v2vsim.recording.recorder import Recorder
 from v2vsim.recording.scan import max_scan_bytes
 from v2vsim.sensors.scene import MapAssets, build_map_assets
 from v2vsim.world.geometry import Pose
@@ -137,8 +136,11 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None) -> int:
     scores = {m: MethodScore(boxes=ApAccumulator(sort=sc.evaluation.ap_sort) if lidar else None) for m in models}
     ego_poses: dict[int, Pose] = {}
     out_dir = Path(args.out) / ("" if me == args.egos[0] else f"ego_{me}")
-    recorder = Recorder(out_dir / "recording.rrd", sc, list(models), list(args.cavs), me,
-                        static) if sc.output.rerun else None
+    recorder = None
+    if sc.output.rerun:  # imported here: rerun and matplotlib cost an ego that does not record ~0.45 s at start
+        from v2vsim.recording.recorder import Recorder
+
+        recorder = Recorder(out_dir / "recording.rrd", sc, list(models), list(args.cavs), me, static)
     checkpoints = method_checkpoints(sc, tuple(models))
     summary = RunSummary(scenario=sc, ego=me, methods=list(models),
                          untrained=all(v is None for v in checkpoints.values()), checkpoints=checkpoints,

@@ -10,6 +10,7 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -18,9 +19,11 @@ from v2vsim.comm.inbox import LinkEvent
 from v2vsim.evaluation.fuse_and_score import score_all
 from v2vsim.evaluation.metrics import MethodScore
 from v2vsim.perception.fuse import FusionInputs, Prediction
-from v2vsim.recording.recorder import Recorder
 from v2vsim.recording.scan import Scan
 from v2vsim.world.state import WorldState
+
+if TYPE_CHECKING:  # rerun and matplotlib load only in an ego that records (ego.py)
+    from v2vsim.recording.recorder import Recorder
 
 
 @dataclass(frozen=True)

@@ -2,10 +2,38 @@
 
 from __future__ import annotations
 
+import compileall
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 import torch
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Byte-compile the checkout once, in the controller, before any worker starts: the suite starts some hundred
+    agent processes, and where PYTHONDONTWRITEBYTECODE is set (as on this machine) each of them would compile
+    every module of the harness from source again (~0.3 s of CPU a process)."""
+    if not hasattr(config, "workerinput"):  # not in an xdist worker
+        for package in ("v2vsim", "agents", "models"):
+            compileall.compile_dir(REPO / package, quiet=1)
+
+
+# Tests that start real processes or install packages, longest first (pytest --durations): started first, they
+# leave the short unit tests to fill both workers at the end instead of a long test running alone as the tail.
+_LONG_FIRST = ("tests/test_wheel.py", "tests/agents/test_identity.py", "tests/v2vsim/study/test_sweep.py",
+               "tests/agents/test_replay.py", "tests/agents/test_run.py", "tests/test_fusion_plugin.py",
+               "tests/v2vsim/env/", "tests/v2vsim/comm/test_fuzz.py", "tests/v2vsim/training/", "tests/agents/")
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    def rank(item: pytest.Item) -> int:
+        path = Path(str(item.path)).relative_to(REPO).as_posix()
+        return next((i for i, prefix in enumerate(_LONG_FIRST) if path.startswith(prefix)), len(_LONG_FIRST))
+
+    items.sort(key=rank)  # stable: within a group, the file's own order
 
 
 @pytest.fixture(autouse=True, scope="session")
