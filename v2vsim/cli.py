@@ -9,7 +9,7 @@ import signal
 import sys
 from pathlib import Path
 
-from models.registry import PluginError  # (imports no torch)
+from models.registration import PluginError  # (imports no torch)
 from v2vsim.config import ConfigError, check_output_dir, load_scenario
 
 IMAGE_BACKBONE_KINDS = ("resnet", "efficientnet_lite0")
@@ -199,7 +199,7 @@ def _cmd_scenarios(args: argparse.Namespace) -> int:
 def _cmd_models(args: argparse.Namespace) -> int:
     """The table (or --json rows) of every encoder and fusion method, plugins with where they come from; a fusion
     plugin that cannot be used is listed as broken with the reason, and then the exit code is 2."""
-    from models.registry import describe_models, format_models_table
+    from models.describe import describe_models, format_models_table
 
     rows = describe_models(args.preset)
     print(json.dumps(rows, indent=2) if args.json else format_models_table(rows))

@@ -100,7 +100,8 @@ def check_plugins(sc: Scenario) -> None:
     (one line: the entry point, the object it points at, what it broke) when one cannot be used. Not part of
     loading a scenario, which every process does (a plugin imports torch): the runner (check_scenario), `v2vsim
     sweep` and the env call it before anything starts."""
-    from models.registry import PluginError, check_methods
+    from models.registration import PluginError
+    from models.registry import check_methods
 
     try:
         check_methods(sc.perception.methods)
