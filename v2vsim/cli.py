@@ -124,7 +124,7 @@ def _cmd_dataset(args: argparse.Namespace) -> int:
 
     record = record_dataset
     if args.format == "opv2v":
-        from v2vsim.data.opv2v import NATIVE_DIR, record_opv2v_dataset
+        from v2vsim.data.opv2v_write import NATIVE_DIR, record_opv2v_dataset
 
         record = record_opv2v_dataset
     try:
