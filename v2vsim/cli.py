@@ -60,7 +60,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         overrides.append(f"perception.methods=[{methods}]")
     if args.frames is not None and args.frames < 1:
         raise ConfigError(f"--frames {args.frames}: expected a number of frames >= 1")
-    from v2vsim.replay import evaluate_points, read_plan
+    from agents.evaluate import evaluate_points, read_plan
 
     if args.plan is not None:
         if args.grid or args.out is not None:

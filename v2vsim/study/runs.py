@@ -8,7 +8,7 @@ progress lines, errors) goes to `sweep-run.log` in its directory.
 
 Record once, replay the rest (docs/run.md "In a sweep"): the CAV side of a run (traffic, sensing,
 encoding, what goes on the air) depends only on the seed and the sender-side keys, so at each seed the first
-point of every group of points that differ only in receiver-side keys (v2vsim.replay.RECEIVER_SIDE) is run
+point of every group of points that differ only in receiver-side keys (v2vsim.recording.messages.RECEIVER_SIDE) is run
 with `output.record_messages=true`, and every other point of the group is `v2vsim evaluate` over that
 recording once it is complete: bit for bit the run it stands for, at the cost of the ego alone.
 """
@@ -164,7 +164,7 @@ def replay_groups(axes: Sequence[Axis], pts: Sequence[Point], lockstep: Sequence
     and duration_s count as sender-side here: a recording holds the kinds its own methods took, its scans only
     with output.rerun on, and the frames its own duration gave. A point on the realtime clock is its own group
     (nothing to record: what its ego holds depends on the wall clock)."""
-    from v2vsim.replay import receiver_side
+    from v2vsim.recording.messages import receiver_side
 
     def sender_side(key: str) -> bool:
         return not receiver_side(key) or key.startswith(("perception.methods", "output", "duration_s"))
@@ -190,7 +190,7 @@ def plan(scenario: Path, axes: Sequence[Axis], pts: Sequence[Point], seeds: Sequ
     """Every (point, seed) run, point-major: the same seeds at every point (a paired design). With `replay`,
     a point that differs from an earlier one only in receiver-side keys replays that point's recording of the
     same seed (replay_groups): the earlier point's runs record. The replays of one recording run in one process
-    (they share decoding, ground truth and equal fusions: v2vsim.replay.evaluate_points), split into as many
+    (they share decoding, ground truth and equal fusions: agents.evaluate.evaluate_points), split into as many
     batches of neighbouring points as keep the 2 x `jobs` replay slots busy (batches_per_recording)."""
     configs = [effective_config(scenario, [*p.overrides(axes), *base]) for p in pts]
     groups = (replay_groups(axes, pts, [c["transport"]["clock"] == "lockstep" for c in configs]) if replay
