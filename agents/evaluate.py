@@ -23,7 +23,7 @@ from v2vsim.config import ConfigError, Scenario, check_output_dir, load_scenario
 from v2vsim.recording.messages import receiver_side
 
 if TYPE_CHECKING:
-    from agents.common import AgentArgs
+    from agents.args import AgentArgs
     from v2vsim.recording.messages import Recording
 
 def _same_file(path: str, sha256: str) -> bool:
@@ -97,9 +97,9 @@ def evaluate_points(recording: Path, points: Sequence[tuple[Sequence[str], Path]
 def _replay_together(rec: Recording, runs: list[AgentArgs], frames: int, labels: list[str]) -> int:
     """Every run's ego_loop on its own thread over one ReplayShare; Ctrl-C stops them all (each writes its
     results as interrupted)."""
-    from agents.common import Stop
     from agents.ego import ego_loop
     from agents.ego_replay import ReplayBus, ReplayShare
+    from agents.lifecycle import Stop
 
     share = ReplayShare(rec, len(runs))
     codes = [0] * len(runs)
@@ -202,7 +202,7 @@ def _prepare(rec: Recording, recorded: int, overrides: list[str], out: Path, fra
     from v2vsim.perception.build import check_scenario
 
     check_scenario(sc)
-    from agents.common import AgentArgs
+    from agents.args import AgentArgs
 
     args = AgentArgs(scenario=sc, scenario_path=str(source), overrides=tuple(sc.overrides), run_id=h["run_id"],
                      listen="", peers=(), cavs=tuple(h["cavs"]), egos=(h["ego"],), cav=h["ego"], frames=n,

@@ -75,7 +75,7 @@ def _check_key_file(sc: Scenario, loader: _Loader) -> None:
         key = Path(path).read_bytes()
     except OSError as e:
         loader.fail("comm.auth.key_file", f"cannot read {path}: {e.strerror or e}")
-    if not key.strip():  # the agents strip the key (agents/common.py read_key)
+    if not key.strip():  # the agents strip the key (agents/args.py read_key)
         loader.fail("comm.auth.key_file", f"{path} is empty or only whitespace; allowed: a file holding a secret key")
 
 
