@@ -18,19 +18,12 @@ import time
 
 import torch
 
-from agents.common import (
-    DONE_GRACE_S,
-    DRIVER,
-    DRIVER_GRACE_S,
-    START_TIMEOUT_S,
-    AgentArgs,
-    Bus,
-    parse_agent_args,
-    run_agent,
-    run_signer,
-)
+from agents.args import AgentArgs, parse_agent_args, run_signer
+from agents.bus import DONE_GRACE_S, DRIVER_GRACE_S, START_TIMEOUT_S, Bus
+from agents.lifecycle import run_agent
 from agents.timing import StageTimer, write_timing
 from v2vsim.comm.codec import Message, encode
+from v2vsim.comm.control import DRIVER
 from v2vsim.comm.share import feature_message
 from v2vsim.evaluation.gt import visible_actor_ids
 from v2vsim.perception.build import (

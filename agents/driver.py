@@ -14,7 +14,9 @@ import sys
 import threading
 import time
 
-from agents.common import START_TIMEOUT_S, AgentArgs, Bus, parse_agent_args, run_agent
+from agents.args import AgentArgs, parse_agent_args
+from agents.bus import START_TIMEOUT_S, Bus
+from agents.lifecycle import run_agent
 from agents.progress import report_progress
 from agents.timing import StageTimer, write_timing
 from v2vsim.traffic import make_backend

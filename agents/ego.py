@@ -25,22 +25,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from agents.common import (
-    DRIVER,
-    START_TIMEOUT_S,
-    AgentArgs,
-    Bus,
-    Stop,
-    parse_agent_args,
-    run_agent,
-    run_signer,
-)
+from agents.args import AgentArgs, parse_agent_args, run_signer
+from agents.bus import START_TIMEOUT_S, Bus
 from agents.ego_collect import bytes_for, collect, control_rejections, reject_leftovers
 from agents.ego_mailbox import Mailbox, Window, cav_died, notify, put_world, set_done, wait_messages, wait_world
 from agents.ego_replay import ReplayBus
 from agents.ego_scoring import AfterFusion, FusedFrame, signals_deferred
+from agents.lifecycle import Stop, run_agent
 from agents.progress import report_progress
 from agents.timing import StageTimer
+from v2vsim.comm.control import DRIVER
 from v2vsim.comm.inbox import Inbox
 from v2vsim.comm.stats import CommStats
 from v2vsim.comm.wire_spec import EgoDecoder, ego_wire_spec

@@ -10,7 +10,8 @@ from collections import Counter
 
 import numpy as np
 
-from agents.common import AgentArgs, Bus
+from agents.args import AgentArgs
+from agents.bus import Bus
 from agents.ego_mailbox import SIDE_KINDS, Mailbox
 from v2vsim.comm.codec import Message
 from v2vsim.comm.inbox import Inbox, distance

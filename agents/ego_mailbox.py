@@ -16,8 +16,9 @@ from collections import Counter, defaultdict
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from agents.common import DONE_GRACE_S, DRIVER, DRIVER_GRACE_S, START_TIMEOUT_S, Bus
+from agents.bus import DONE_GRACE_S, DRIVER_GRACE_S, START_TIMEOUT_S, Bus
 from v2vsim.comm.codec import RejectedMessage
+from v2vsim.comm.control import DRIVER
 from v2vsim.config import Scenario
 from v2vsim.recording.scan import scan_frame
 

@@ -27,8 +27,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from agents.common import Stop
 from agents.ego_mailbox import Mailbox
+from agents.lifecycle import Stop
 from v2vsim.comm.message import Message, RejectedMessage
 from v2vsim.comm.wire_spec import EgoDecoder
 from v2vsim.perception.fuse import Prediction

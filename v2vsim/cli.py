@@ -3,272 +3,20 @@
 from __future__ import annotations
 
 import argparse
-import json
-import re
 import signal
 import sys
-from pathlib import Path
 
-from models.registry import PluginError  # (imports no torch)
-from v2vsim.config import ConfigError, check_output_dir, load_scenario
+from models.registration import PluginError  # (imports no torch)
+from v2vsim import verbs
+from v2vsim.config import ConfigError
 
 IMAGE_BACKBONE_KINDS = ("resnet", "efficientnet_lite0")
-
-_RUN_ID = re.compile(r"[A-Za-z0-9_.-]{1,64}")  # a zenoh key chunk (v2vsim/<run>/<kind>/<sender>)
 
 
 def _scenario_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("scenario", help="scenario YAML, or the name of a shipped scenario (`v2vsim scenarios`)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY.PATH=VALUE",
                    help="override a scenario key, e.g. --set comm.drop.p=0.3 (repeatable)")
-
-
-def _method_names(value: str | None) -> str | None:
-    """--methods "a, b" -> "a,b" (None when not given); ConfigError when it names no method (an empty --methods
-    used to run every method). The names themselves are checked with the scenario (perception.methods)."""
-    if value is None:
-        return None
-    names = [m.strip() for m in value.split(",") if m.strip()]
-    if not names:
-        raise ConfigError(f"--methods {value!r}: names no method; expected comma-separated methods, e.g. none,cobevt")
-    return ",".join(names)
-
-
-def _cmd_run(args: argparse.Namespace) -> int:
-    overrides = list(args.overrides)
-    methods = _method_names(args.methods)
-    if methods:
-        overrides.append(f"perception.methods=[{methods}]")
-    scenario = load_scenario(args.scenario, overrides)  # validate before the heavy imports
-    if args.frames is not None and args.frames < 1:  # 0 used to mean "the whole duration", -1 "nothing"
-        raise ConfigError(f"--frames {args.frames}: expected a number of frames >= 1 "
-                          f"(without --frames: duration_s x rate_hz = {scenario.frames})")
-    if args.run_id is not None and not _RUN_ID.fullmatch(args.run_id):
-        raise ConfigError(f"--run-id {args.run_id!r}: allowed: letters, digits, '_', '-' and '.'")
-    out = Path(args.out) if args.out else Path(scenario.output.dir)
-    check_output_dir(out, "--out" if args.out else f"{scenario.source}: output.dir")
-    remote = tuple(c for c in (args.remote_cavs or "").split(",") if c)
-    from v2vsim.runner import run
-
-    return run(scenario, out, frames=args.frames, remote_cavs=remote, run_id=args.run_id)
-
-
-def _cmd_evaluate(args: argparse.Namespace) -> int:
-    overrides = list(args.overrides)
-    methods = _method_names(args.methods)
-    if methods:
-        overrides.append(f"perception.methods=[{methods}]")
-    if args.frames is not None and args.frames < 1:
-        raise ConfigError(f"--frames {args.frames}: expected a number of frames >= 1")
-    from v2vsim.replay import evaluate_points, read_plan
-
-    if args.plan is not None:
-        if args.grid or args.out is not None:
-            raise ConfigError("--plan names every point's folder and overrides: it takes no --grid or --out")
-        points = [([*o, *overrides], out) for o, out in read_plan(Path(args.plan))]
-    elif args.out is None:
-        raise ConfigError("--out: required (the output folder; with --grid, each point in a subfolder of it)")
-    elif args.grid:
-        from v2vsim.study.grid import parse_axes
-        from v2vsim.study.grid import points as grid_points
-
-        axes = parse_axes(args.grid)
-        points = [([*p.overrides(axes), *overrides], Path(args.out) / p.pid) for p in grid_points(axes)]
-    else:
-        points = [(overrides, Path(args.out))]
-    return evaluate_points(Path(args.recording), points, frames=args.frames)
-
-
-def _cmd_agent(args: argparse.Namespace) -> int:
-    load_scenario(args.scenario, args.overrides)  # a clear error before anything starts
-    from agents.cav import main as cav_main
-
-    argv = [args.scenario, "--cav", args.cav, "--run-id", args.run_id, "--cavs", args.cavs, "--egos", args.egos,
-            "--frames", str(args.frames)] + [x for o in args.overrides for x in ("--set", o)]
-    if args.identity:
-        argv += ["--identity", args.identity]
-    return cav_main(argv)
-
-
-def _cmd_router(args: argparse.Namespace) -> int:
-    import time
-
-    from v2vsim.comm.transport import TransportError, open_session
-    from v2vsim.config import TransportConfig
-
-    try:
-        session = open_session(TransportConfig(mode="router", listen=tuple(args.listen)))  # type: ignore[arg-type]
-    except TransportError as e:
-        print(f"v2vsim: error: {e}", file=sys.stderr)
-        return 2
-    print(f"v2vsim: zenoh router listening on {', '.join(args.listen)} (Ctrl-C to stop)", file=sys.stderr)
-    try:
-        while True:
-            time.sleep(1)
-    finally:
-        session.close()
-
-
-def _cmd_frame(args: argparse.Namespace) -> int:
-    scenario = load_scenario(args.scenario, args.overrides)
-    from v2vsim.data.frame import write_frame
-
-    written = write_frame(scenario, args.at, Path(args.out))
-    print(f"wrote {len(written)} files to {args.out}")
-    return 0
-
-
-def _cmd_dataset(args: argparse.Namespace) -> int:
-    from v2vsim.data.layout import DatasetError
-    from v2vsim.data.record import parse_seeds, record_dataset
-
-    record = record_dataset
-    if args.format == "opv2v":
-        from v2vsim.data.opv2v import NATIVE_DIR, record_opv2v_dataset
-
-        record = record_opv2v_dataset
-    try:
-        seeds = parse_seeds(args.seeds)
-        out = record(args.scenario, seeds, args.frames, Path(args.out), split=args.split,
-                     overrides=tuple(args.overrides), cameras=args.cameras,
-                     traffic_only=args.traffic_only, jobs=args.jobs)
-    except (ValueError, DatasetError) as e:
-        print(f"v2vsim: error: {e}", file=sys.stderr)
-        return 2
-    if args.format == "opv2v":
-        print(f"traffic: {out}/{NATIVE_DIR}/*/traffic" if args.traffic_only else
-              f"dataset: {out} (OPV2V layout; recorded from {out}/{NATIVE_DIR}/manifest.json)")
-    else:
-        print(f"traffic: {out}/*/traffic" if args.traffic_only else f"dataset: {out}/manifest.json")
-    return 0
-
-
-def _cmd_train(args: argparse.Namespace) -> int:
-    from v2vsim.data.layout import DatasetError
-    from v2vsim.training.stages import TrainArgs
-    from v2vsim.training.train import command_line, main_train
-
-    overrides = {k: getattr(args, k) for k in ("epochs", "samples_per_epoch", "batch", "lr", "val_samples",
-                                               "yaw_jitter_deg")
-                 if getattr(args, k) is not None}
-    extra = {}
-    if args.ratios is not None:
-        try:
-            extra["ratios"] = tuple(int(r) for r in args.ratios.split(","))
-        except ValueError:
-            print(f"v2vsim train: --ratios {args.ratios!r}: expected integers separated by commas, e.g. 8,16",
-                  file=sys.stderr)
-            return 2
-        if any(r < 2 for r in extra["ratios"]):
-            print(f"v2vsim train: --ratios {args.ratios!r}: every ratio must be >= 2", file=sys.stderr)
-            return 2
-    targs = TrainArgs(data=Path(args.data), stage=args.stage, out=Path(args.out), work=Path(args.work),
-                      encoder=args.encoder, preset=args.preset, cells=args.cells, bf16=args.bf16,
-                      wire_ratio=args.wire_ratio, image_backbone=args.image_backbone, **extra,
-                      device=args.device, threads=args.threads, seed=args.seed, resume=args.resume,
-                      val_every=args.val_every, workers=args.workers,
-                      overrides=tuple(overrides.items()), command=command_line(sys.argv[2:]))
-    if args.device.startswith("cuda"):
-        import torch
-
-        if not torch.cuda.is_available():
-            print("v2vsim: error: --device cuda: no CUDA device here (this torch build: "
-                  f"{torch.__version__}); use --device cpu", file=sys.stderr)
-            return 2
-    from models.efficientnet_lite import PretrainedWeightsMissing
-
-    try:
-        return main_train(targs)
-    except (ValueError, DatasetError, PretrainedWeightsMissing) as e:
-        print(f"v2vsim: error: {e}", file=sys.stderr)
-        return 2
-
-
-def _cmd_scenarios(args: argparse.Namespace) -> int:
-    from v2vsim.config import describe, shipped_scenarios
-
-    shipped = shipped_scenarios()
-    if not shipped:
-        raise ConfigError("no shipped scenarios in this install (v2vsim/scenarios/ or the checkout's scenarios/)")
-    width = max(map(len, shipped))
-    for name, path in shipped.items():
-        print(f"{name:<{width}}  {describe(path)}".rstrip())
-    return 0
-
-
-def _cmd_models(args: argparse.Namespace) -> int:
-    """The table (or --json rows) of every encoder and fusion method, plugins with where they come from; a fusion
-    plugin that cannot be used is listed as broken with the reason, and then the exit code is 2."""
-    from models.registry import describe_models, format_models_table
-
-    rows = describe_models(args.preset)
-    print(json.dumps(rows, indent=2) if args.json else format_models_table(rows))
-    broken = [r for r in rows if r.get("error")]
-    if broken:
-        print(f"v2vsim: error: {len(broken)} fusion plugin(s) cannot be used: "
-              f"{', '.join(r['name'] for r in broken)} (the reason is in the table)", file=sys.stderr)
-        return 2
-    return 0
-
-
-def _cmd_bench(args: argparse.Namespace) -> int:
-    import importlib
-
-    bench = importlib.import_module(f"v2vsim.bench.{args.what}")
-    return int(bench.main(list(args.rest)) or 0)
-
-
-def _cmd_sweep(args: argparse.Namespace) -> int:
-    from v2vsim.study.sweep import SweepArgs, sweep
-
-    return sweep(SweepArgs(scenario=Path(args.scenario), grid=tuple(args.grid), seeds=args.seeds, out=Path(args.out),
-                           frames=args.frames, jobs=args.jobs, overrides=tuple(args.overrides),
-                           methods=_method_names(args.methods),
-                           bootstrap=args.bootstrap, engine=args.engine, scheduler=args.scheduler,
-                           replay=args.replay))
-
-
-def _cmd_bandwidth(args: argparse.Namespace) -> int:
-    from v2vsim.data.record import parse_seeds
-    from v2vsim.env.bandwidth import bandwidth_curve, parse_fractions
-
-    try:
-        seeds, fractions = parse_seeds(args.seeds), parse_fractions(args.fractions)
-    except ValueError as e:
-        print(f"v2vsim: error: {e}", file=sys.stderr)
-        return 2
-    if args.frames < 1:
-        raise ConfigError(f"--frames {args.frames}: expected a number of frames >= 1")
-    methods = str(_method_names(args.methods)).split(",")
-    overrides = dict(o.split("=", 1) for o in args.overrides if "=" in o)
-    bad = [o for o in args.overrides if "=" not in o]
-    if bad:
-        raise ConfigError(f"--set {bad[0]!r}: expected KEY.PATH=VALUE")
-    import yaml
-
-    bandwidth_curve(args.scenario, fractions, seeds, args.frames, methods, Path(args.out),
-                    overrides={k: yaml.safe_load(v) for k, v in overrides.items()})
-    print(f"bandwidth: {Path(args.out) / 'bandwidth.md'}")
-    return 0
-
-
-def _cmd_view(args: argparse.Namespace) -> int:
-    from v2vsim.recording.view import ViewError, find_recording, open_viewer, screenshots
-
-    try:
-        rrd = find_recording(Path(args.run))
-        if args.screenshots is None:
-            return open_viewer(rrd)
-        try:
-            frames = [int(f) for f in args.at.split(",") if f.strip()]
-        except ValueError:
-            raise ViewError(f"--at: expected frame numbers like 0,50,100, got {args.at!r}") from None
-        for path in screenshots(rrd, Path(args.screenshots), frames or [0]):
-            print(path)
-        return 0
-    except ViewError as e:
-        print(f"v2vsim view: error: {e}", file=sys.stderr)
-        return 2
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -282,7 +30,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--methods", default=None, help="comma-separated fusion methods, e.g. none,cobevt")
     p.add_argument("--remote-cavs", default=None, help="CAV ids started on other hosts with `v2vsim agent`")
     p.add_argument("--run-id", default=None, help="run id (default: random); remote agents must use the same")
-    p.set_defaults(func=_cmd_run)
+    p.set_defaults(func=verbs.cmd_run)
 
     p = sub.add_parser("evaluate", help="replay the ego over a recorded run (output.record_messages) with other "
                        "receiver-side keys or methods: no SUMO, sensing or encoding (docs/run.md)")
@@ -298,7 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help='points to replay in one pass, as JSON: [{"out": DIR, "overrides": ["KEY=VALUE", ...]}, ...] '
                    "(what v2vsim sweep writes; instead of --out and --grid)")
     p.add_argument("--out", default=None, help="output directory: metrics.json, report.md, plots")
-    p.set_defaults(func=_cmd_evaluate)
+    p.set_defaults(func=verbs.cmd_evaluate)
 
     p = sub.add_parser("agent", help="run one CAV perception agent of a run started elsewhere (across hosts)")
     _scenario_args(p)
@@ -309,17 +57,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=0)
     p.add_argument("--identity", default=None, help="comm.auth.identity per_process: the identity file the run "
                                                    "issued this agent (the run prints the path)")
-    p.set_defaults(func=_cmd_agent)
+    p.set_defaults(func=verbs.cmd_agent)
 
     p = sub.add_parser("router", help="a zenoh router for runs across hosts (transport.mode: client)")
     p.add_argument("--listen", action="append", default=None, help="endpoint, e.g. tcp/0.0.0.0:7447")
-    p.set_defaults(func=_cmd_router)
+    p.set_defaults(func=verbs.cmd_router)
 
     p = sub.add_parser("frame", help="write one frame as files: world.json, LiDAR, camera images, GT masks")
     _scenario_args(p)
     p.add_argument("--at", type=float, required=True, help="simulated seconds after warm-up")
     p.add_argument("--out", required=True, help="output directory")
-    p.set_defaults(func=_cmd_frame)
+    p.set_defaults(func=verbs.cmd_frame)
 
     p = sub.add_parser("dataset", help="record runs as a training dataset (docs/dataset.md)")
     _scenario_args(p)
@@ -336,7 +84,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--format", choices=["v2vsim", "opv2v"], default="v2vsim",
                    help="v2vsim (default) or opv2v: OPV2V's layout (train/validate/test scenario folders, .pcd, "
                         ".yaml, camera and BEV PNGs) beside the v2vsim recording it is made from (docs/dataset.md)")
-    p.set_defaults(func=_cmd_dataset)
+    p.set_defaults(func=verbs.cmd_dataset)
 
     p = sub.add_parser("train", help="train a model zoo (LiDAR, or camera with --encoder), stage by stage "
                                      "(docs/training.md)")
@@ -381,7 +129,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--image-backbone", default=None, choices=IMAGE_BACKBONE_KINDS,
                    help="a camera encoder's image backbone (default: the --out zoo's, else the preset's: "
                         "ImageNet EfficientNet-Lite0 for tiny); models/image_backbone.py")
-    p.set_defaults(func=_cmd_train)
+    p.set_defaults(func=verbs.cmd_train)
 
     p = sub.add_parser("sweep", help="run a scenario over a grid of overrides x seeds: sweep.csv/json/md, plots "
                        "with 95%% bootstrap intervals")
@@ -403,7 +151,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="simulate every run (default: record the first point of each seed and replay the points "
                    "that differ from it only in receiver-side keys with `v2vsim evaluate`)")
     p.add_argument("--out", required=True, help="sweep directory (resumable: complete runs there are reused)")
-    p.set_defaults(func=_cmd_sweep)
+    p.set_defaults(func=verbs.cmd_sweep)
 
     p = sub.add_parser("bandwidth", help="bandwidth vs accuracy: fixed shares of BEV cells sent, in the env "
                                          "(v2vsim.env): bandwidth.csv/md/png")
@@ -415,29 +163,29 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--methods", default="attfuse,fcooper,v2vnet,disconet,cobevt",
                    help="fusion methods the ego runs (none is always added)")
     p.add_argument("--out", required=True, help="output directory")
-    p.set_defaults(func=_cmd_bandwidth)
+    p.set_defaults(func=verbs.cmd_bandwidth)
 
     p = sub.add_parser("scenarios", help="list the shipped scenarios, one line each: the name SCENARIO accepts, "
                                          "what it is")
-    p.set_defaults(func=_cmd_scenarios)
+    p.set_defaults(func=verbs.cmd_scenarios)
 
     p = sub.add_parser("models", help="list every encoder and fusion method (installed plugins too, with where each "
                                       "comes from): parameters, stage shapes")
     p.add_argument("--preset", choices=["tiny", "paper"], default="tiny")
     p.add_argument("--json", action="store_true")
-    p.set_defaults(func=_cmd_models)
+    p.set_defaults(func=verbs.cmd_models)
 
     p = sub.add_parser("view", help="open a run's recording.rrd in the Rerun viewer (or take screenshots)")
     p.add_argument("run", help="the run directory (or a .rrd file)")
     p.add_argument("--screenshots", metavar="DIR", default=None,
                    help="instead of opening a window, save PNGs of a headless viewer into DIR")
     p.add_argument("--at", default="0", help="with --screenshots: comma-separated frames (default 0)")
-    p.set_defaults(func=_cmd_view)
+    p.set_defaults(func=verbs.cmd_view)
 
     p = sub.add_parser("bench", help="benchmarks: sensors | models | comm | run | env | placement | flood")
     p.add_argument("what", choices=["sensors", "models", "comm", "run", "env", "placement", "flood"])
     p.add_argument("rest", nargs=argparse.REMAINDER, help="options passed to the benchmark (see its --help)")
-    p.set_defaults(func=_cmd_bench)
+    p.set_defaults(func=verbs.cmd_bench)
     return parser
 
 

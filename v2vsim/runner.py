@@ -35,7 +35,7 @@ import uuid
 from collections.abc import Callable
 from pathlib import Path
 
-from agents.common import agent_argv
+from agents.args import agent_argv
 from agents.progress import ENV as PROGRESS_ENV
 from agents.progress import ProgressDisplay, parse_record
 from v2vsim.comm.identity import Identity, write_identity_file

@@ -10,7 +10,7 @@ preset's channels on a 16 x 16 grid) and feeds it a seeded random batch:
 - an absent agent (valid_mask False) is ignored exactly: other features in its slots, and NaN / inf there,
   leave the output bit-for-bit unchanged.
 
-A failure raises models.registry.PluginError naming the method, where it comes from and what it broke. The check
+A failure raises models.registration.PluginError naming the method, where it comes from and what it broke. The check
 runs in inference mode, under torch.no_grad, on the CPU, and leaves the global random state as it found it (a
 seeded run builds the same weights whether or not a plugin was checked first).
 """
@@ -23,7 +23,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from models.registry import PluginError
+from models.registration import PluginError
 
 CHECK_CHANNELS = 64  # the tiny preset's C
 CHECK_CELLS = 16

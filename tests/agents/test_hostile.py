@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 import zenoh
 
-from agents.common import AgentArgs, Bus
+from agents.args import AgentArgs
+from agents.bus import Bus
 from v2vsim.comm import transport as T
 from v2vsim.comm.codec import Message, decode, encode
 from v2vsim.comm.control import ControlPolicy, open_sealed, seal

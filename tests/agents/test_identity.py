@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import agents.common as common
-from agents.common import Bus
+import agents.bus as agent_bus
+from agents.bus import Bus
 from v2vsim.comm import control
 from v2vsim.comm import transport as T
 from v2vsim.comm.codec import Message, RejectedMessage, check_arrival, decode, encode
@@ -118,8 +118,8 @@ def test_a_token_without_a_signed_hello_is_nobody(sessions: Sessions, monkeypatc
     """Issue 34 item 2: a fake ego token made the driver start early; one raised and withdrawn made it stop;
     one held on a dead CAV's key hid its death. Under identities presence needs a signed hello, and a
     process whose hellos stop is gone within SILENCE_S whatever tokens say."""
-    monkeypatch.setattr(common, "SILENCE_S", 1.0)
-    monkeypatch.setattr(common, "HEARTBEAT_S", 0.2)
+    monkeypatch.setattr(agent_bus, "SILENCE_S", 1.0)
+    monkeypatch.setattr(agent_bus, "HEARTBEAT_S", 0.2)
     a, b, c = sessions
     ids = issue(RUN, NAMES)
     driver = Bus(a, RUN, "driver.main", key=ids["driver.main"], policy=POLICY)
@@ -205,7 +205,7 @@ def test_identities_stop_impersonation_and_dangling_tokens(tmp_path: Path, route
     assert m["frames"] == frames and m["status"] == "complete", m["status"]
     assert set(m["lost_agents"]) == {"cav1"}
     print(f"cav1's death noticed {noticed:.1f} s after SIGKILL")
-    assert noticed < common.SILENCE_S + 5, noticed  # the ego's hang timeout was 60 s
+    assert noticed < agent_bus.SILENCE_S + 5, noticed  # the ego's hang timeout was 60 s
     control_rejected = m["comm"]["by_kind"]["control"]["rejected_reasons"]
     assert control_rejected.get("bad_signature", 0) >= 1 and control_rejected.get("unknown_sender", 0) >= 1
 

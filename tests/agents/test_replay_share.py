@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from agents.common import Stop
 from agents.ego_replay import ReplayShare
+from agents.lifecycle import Stop
 from v2vsim.recording.messages import RecordedFrame
 
 

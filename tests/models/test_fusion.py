@@ -7,11 +7,12 @@ import math
 import pytest
 import torch
 
+from models.build import build_fusion
 from models.fusion.attfuse import AttFusion
 from models.fusion.early import merge_points_to_ego
 from models.fusion.late import late_fuse_boxes, late_fuse_probabilities
 from models.fusion.none import NoFusion
-from models.registry import FUSION, build_fusion
+from models.registry import FUSION
 
 C, HW = 64, 16  # tiny channels; 16 cells keep every window size valid and the test fast
 SYMMETRIC = ["fcooper", "attfuse", "v2vnet", "disconet"]

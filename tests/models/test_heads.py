@@ -7,6 +7,7 @@ import math
 import pytest
 import torch
 
+from models.build import build_heads
 from models.heads import (
     AnchorTargetAssigner,
     BevHeads,
@@ -18,7 +19,6 @@ from models.heads import (
     segmentation_probabilities,
 )
 from models.losses import detection_loss, dynamic_target, segmentation_loss, sigmoid_focal_loss, static_target
-from models.registry import build_heads
 from v2vsim.world.geometry import BevGrid
 
 

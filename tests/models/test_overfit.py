@@ -12,9 +12,9 @@ import time
 
 import torch
 
+from models.build import build_cooperative
 from models.heads import AnchorTargetAssigner
 from models.losses import detection_loss, segmentation_loss, static_target
-from models.registry import build_cooperative
 from models.warp import transform_points
 from v2vsim.world.geometry import BevGrid
 

@@ -12,14 +12,13 @@ import torch
 from torch import nn
 
 from models import registry
+from models.build import build_cooperative, build_fusion
 from models.fusion.cobevt import FuseBEVT
 from models.fusion.contract import check_fusion_module
+from models.registration import PluginError
 from models.registry import (
     FUSION,
     METHODS,
-    PluginError,
-    build_cooperative,
-    build_fusion,
     check_methods,
     fusion_kwargs,
     intermediate_methods,

@@ -9,22 +9,11 @@ from collections.abc import Callable
 import pytest
 import torch
 
-from models import registry
+from models.build import build_cooperative, build_encoder, build_fusion, build_heads
+from models.describe import describe_models, format_models_table
 from models.fusion.base import FusionModule
 from models.presets import PRESETS, get_preset
-from models.registry import (
-    ENCODERS,
-    FUSION,
-    METHODS,
-    build_cooperative,
-    build_encoder,
-    build_fusion,
-    build_heads,
-    describe_models,
-    format_models_table,
-    intermediate_methods,
-    is_intermediate,
-)
+from models.registry import ENCODERS, FUSION, METHODS, intermediate_methods, is_intermediate
 
 
 def test_tables() -> None:
@@ -148,7 +137,7 @@ def test_describe_models_tiny() -> None:
     json.dumps(rows)
     table = format_models_table(rows)
     assert "pointpillars" in table and "cobevt" in table and "bracket" in table
-    assert registry.format_models_table([]).startswith("name")
+    assert format_models_table([]).startswith("name")
 
 
 @pytest.mark.parametrize("method", ["attfuse", "late"])
@@ -168,7 +157,7 @@ def test_cobevt_fuses_as_many_agents_as_a_scenario_allows() -> None:
     """cavs.count goes up to 16: the FuseBEVT bias table must cover 16 agents."""
     import torch
 
-    from models.registry import build_fusion
+    from models.build import build_fusion
 
     fusion = build_fusion("cobevt", "tiny").eval()
     x = torch.randn(1, 16, 64, 8, 8)

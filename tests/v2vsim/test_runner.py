@@ -13,7 +13,7 @@ import pytest
 
 import agents.driver as driver
 import v2vsim.runner as runner
-from agents.common import AgentArgs
+from agents.args import AgentArgs
 from agents.progress import ENV, ProgressDisplay, parse_record, report_progress
 from v2vsim.comm.transport import free_ports
 from v2vsim.config import load_scenario

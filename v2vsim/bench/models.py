@@ -22,8 +22,9 @@ from collections.abc import Callable
 
 import torch
 
+from models.build import build_encoder, build_fusion, build_heads
 from models.presets import get_preset
-from models.registry import ENCODERS, FUSION, build_encoder, build_fusion, build_heads
+from models.registry import ENCODERS, FUSION
 from models.warp import warp_to_ego
 
 AGENTS = (1, 2, 4, 8)

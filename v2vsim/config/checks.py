@@ -75,7 +75,7 @@ def _check_key_file(sc: Scenario, loader: _Loader) -> None:
         key = Path(path).read_bytes()
     except OSError as e:
         loader.fail("comm.auth.key_file", f"cannot read {path}: {e.strerror or e}")
-    if not key.strip():  # the agents strip the key (agents/common.py read_key)
+    if not key.strip():  # the agents strip the key (agents/args.py read_key)
         loader.fail("comm.auth.key_file", f"{path} is empty or only whitespace; allowed: a file holding a secret key")
 
 
@@ -100,7 +100,8 @@ def check_plugins(sc: Scenario) -> None:
     (one line: the entry point, the object it points at, what it broke) when one cannot be used. Not part of
     loading a scenario, which every process does (a plugin imports torch): the runner (check_scenario), `v2vsim
     sweep` and the env call it before anything starts."""
-    from models.registry import PluginError, check_methods
+    from models.registration import PluginError
+    from models.registry import check_methods
 
     try:
         check_methods(sc.perception.methods)

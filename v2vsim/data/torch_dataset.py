@@ -3,7 +3,7 @@
 A sample holds what `CooperativePerception.forward` takes (per-agent LiDAR clouds, relative poses,
 valid flags; ego first, then the other CAVs within `range_m` of the ego, in id order as in a run) and the
 targets on the ego's BEV grid. Frames are read lazily from their .npz files, or from an OPV2V-layout folder
-(v2vsim.data.opv2v; `open_store` tells them apart).
+(v2vsim.data.opv2v_read; `open_store` tells them apart).
 
 `delays`: frames of V2V delay drawn per sample for the neighbours (0 = same frame). A neighbour
 delayed by d contributes its frame k-d data warped with its frame k-d pose, while targets are of
@@ -17,10 +17,8 @@ frame of the agent's capture pose.
 from __future__ import annotations
 
 import contextlib
-import json
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -28,53 +26,15 @@ import torch
 from torch import Tensor
 from torch.utils.data import Dataset
 
-from v2vsim.data.layout import DatasetError, frame_path, read_manifest, runs_of, unpack_masks
+from v2vsim.data.layout import DatasetError, unpack_masks
+from v2vsim.data.opv2v_read import OPV2VStore, is_opv2v
+from v2vsim.data.store import FrameStore
 from v2vsim.world.geometry import Pose, relative_pose
-
-
-@dataclass(frozen=True)
-class SampleKey:
-    run: str
-    frame: int
-    ego: str
-
-
-class FrameStore:
-    """Reads frames of one dataset lazily (npz members are inflated on access)."""
-
-    def __init__(self, root: Path) -> None:
-        self.root = Path(root)
-        self.manifest = read_manifest(self.root)
-        self.runs: dict[str, dict] = {}
-        for r in self.manifest["runs"]:
-            meta = self.root / r["name"] / "run.json"
-            if not meta.is_file():
-                raise DatasetError(f"{meta}: missing (the run listed in the manifest was not fully written)")
-            self.runs[r["name"]] = {**r, **json.loads(meta.read_text())}
-
-    def frame(self, run: str, k: int) -> np.lib.npyio.NpzFile:
-        p = frame_path(self.root / run, k)
-        if not p.is_file():
-            raise DatasetError(f"{p}: frame file missing")
-        return np.load(p)
-
-    def keys(self, split: str, egos: str = "all", stride: int = 1) -> list[SampleKey]:
-        """Every (run, frame, ego) of a split; egos "all" (each CAV present) or "first" (cav0 only)."""
-        out = []
-        for r in runs_of(self.manifest, split):
-            for k in range(0, r["frames"], stride):
-                with self.frame(r["name"], k) as f:
-                    cavs = [str(c) for c in f["cavs"]]
-                for c in (cavs if egos == "all" else cavs[:1]):
-                    out.append(SampleKey(r["name"], k, c))
-        return out
 
 
 def open_store(root: Path | str) -> FrameStore:
     """The frames of a dataset folder: a native v2vsim dataset (manifest.json), or an OPV2V-layout folder
-    (v2vsim.data.opv2v.OPV2VStore, read into the same frame keys)."""
-    from v2vsim.data.opv2v import OPV2VStore, is_opv2v
-
+    (v2vsim.data.opv2v_read.OPV2VStore, read into the same frame keys)."""
     root = Path(root)
     if is_opv2v(root):
         return OPV2VStore(root)  # type: ignore[return-value]

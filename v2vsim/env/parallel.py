@@ -32,7 +32,8 @@ import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
-from models.registry import METHODS, PluginError, check_methods, is_intermediate
+from models.registration import PluginError
+from models.registry import METHODS, check_methods, is_intermediate
 from v2vsim.comm.codec import Message, encode
 from v2vsim.comm.inbox import Inbox, distance
 from v2vsim.comm.share import cells_sent, dense_payload, feature_message

@@ -24,10 +24,11 @@ import torch
 from torch import nn
 
 from models import zoo
+from models.build import build_cooperative, build_encoder
 from models.compression import ChannelCompressor
 from models.extrapolation import FeatureExtrapolation
 from models.presets import get_preset
-from models.registry import MODALITY, build_cooperative, build_encoder, is_intermediate, is_plugin, plugin_weights
+from models.registry import MODALITY, is_intermediate, is_plugin, plugin_weights
 from v2vsim.config import ConfigError, Scenario, check_plugins
 
 

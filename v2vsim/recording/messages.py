@@ -64,6 +64,20 @@ def resolved_keys(sc: Any) -> dict[str, Any]:
     return out
 
 
+# What acts only at the receiver: a key equal to one of these, or under one (dotted prefix). `v2vsim evaluate`
+# replays a recording with other values of these keys (agents.evaluate); any other key changed what the CAVs sent.
+RECEIVER_SIDE = (
+    "name", "duration_s", "comm.range_m", "comm.latency_ms", "comm.drop", "comm.bandwidth_mbps", "comm.max_age_ms",
+    "comm.fusion_deadline_ms", "comm.compensation", "comm.pose_noise", "comm.channel", "comm.medium",
+    "perception.methods", "evaluation", "output", "transport.pipeline",
+    "transport.mode", "transport.connect", "transport.listen",  # how the processes met: no bus in a replay
+)
+
+
+def receiver_side(key: str) -> bool:
+    return any(key == r or key.startswith(r + ".") for r in RECEIVER_SIDE)
+
+
 # Scenario keys naming files the run read, copied into the recording's files/ with their sha256: where the recorded
 # paths are gone (a recording moved to another machine), evaluate loads the copies, and a path that differs from
 # the recorded one counts as the same key when the file's content is the same. Never comm.auth.key_file (a secret).

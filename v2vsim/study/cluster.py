@@ -28,7 +28,8 @@ from pathlib import Path
 from typing import Any
 
 from v2vsim.config import ConfigError
-from v2vsim.study.runs import LOG, STOP_GRACE_S, RunSpec
+from v2vsim.study.plan import RunSpec
+from v2vsim.study.runs import LOG, STOP_GRACE_S
 
 SCRATCH_OUT = "run"  # the run's --out inside the task's scratch directory
 

@@ -20,8 +20,9 @@ from typing import TextIO
 
 from v2vsim.config import ConfigError, check_output_dir, find_scenario, load_scenario
 from v2vsim.study.grid import Axis, Point, base_overrides, parse_axes, parse_seeds, points, validate
+from v2vsim.study.plan import RunSpec, plan, replay_refusal
 from v2vsim.study.rows import collect, methods_of
-from v2vsim.study.runs import LOG, Job, Progress, RunResult, RunSpec, execute, plan, replay_refusal, start_process
+from v2vsim.study.runs import LOG, Job, Progress, RunResult, execute, start_process
 from v2vsim.study.stats import DEFAULT_B, DEFAULT_RNG_SEED, LEVEL
 
 EXIT_FAILED, EXIT_INTERRUPTED = 1, 130

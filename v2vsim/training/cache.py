@@ -15,7 +15,7 @@ import torch
 from torch import nn
 
 from v2vsim.data.layout import runs_of
-from v2vsim.data.torch_dataset import FrameStore
+from v2vsim.data.store import FrameStore
 
 ENCODER_FILE = "encoder.json"  # which encoder wrote the cache: {"source": ..., "fingerprint": ...}
 

@@ -16,11 +16,12 @@ import torch
 from torch import nn
 
 from models import zoo
+from models.build import build_cooperative, preset_image_backbone
 from models.compression import ChannelCompressor
 from models.cooperative import CooperativePerception
 from models.extrapolation import FeatureExtrapolation
 from models.presets import get_preset
-from models.registry import MODALITY, build_cooperative, check_methods, is_plugin, preset_image_backbone
+from models.registry import MODALITY, check_methods, is_plugin
 from v2vsim.data.layout import DatasetError
 
 FUSION_STAGES = ("attfuse", "fcooper", "v2vnet", "cobevt", "disconet")

@@ -25,37 +25,38 @@ checkpoints every few minutes and per epoch under --work; `--resume` continues m
 from __future__ import annotations
 
 import dataclasses
-import json
 import shlex
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
 from torch import Tensor, nn
 
-from models import zoo
 from models.compression import ChannelCompressor
 from models.heads import AnchorTargetAssigner
-from models.registry import MODALITY, intermediate_methods, is_intermediate
-from v2vsim.data.layout import DatasetError, runs_of
+from models.registry import MODALITY
 from v2vsim.data.torch_dataset import CooperativeDataset, collate, open_store, tensor_inputs
 from v2vsim.training.augment import yaw_rotate_batch
 from v2vsim.training.cache import (
     FeatureCache,
     build_feature_cache,
-    encoder_fingerprint,
-    read_cache_encoder,
     write_cache_encoder,
 )
+from v2vsim.training.export import export
 from v2vsim.training.extrapolate import extrapolate_batch
 from v2vsim.training.losses import distill_loss, perception_loss
+from v2vsim.training.prepare import (
+    cache_encoder,
+    check_cache_encoder,
+    check_cache_grid,
+    check_dataset_has_cameras,
+    on_wire,
+)
 from v2vsim.training.stages import (
     COMPRESS,
     EXTRAPOLATE,
     SPECS,
-    WIRE_RATIO,
     StageSpec,
     TrainArgs,
     _prefixed,
@@ -69,10 +70,7 @@ from v2vsim.training.stages import (
     stage_spec,
     stages_for,
     state_to_save,
-    train_cells,
-    train_image_backbone,
     wire_compressor,
-    zoo_state,
 )
 from v2vsim.training.validate import validate
 
@@ -134,7 +132,6 @@ class Progress:
         parts = " ".join(f"{k} {v:.4g}" for k, v in losses.items())
         print(f"[{self.stage}] epoch {epoch + 1}/{epochs} step {done}/{self.total}  loss {parts}  "
               f"{rate:.1f} samples/s  ETA {left / 60:.1f} min", file=self.log, flush=True)
-
 
 
 def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
@@ -308,126 +305,6 @@ def batches(ds: CooperativeDataset, perm: np.ndarray, batch: int, first: int, st
         return (collate([ds[j] for j in c]) for c in chunks)
     return iter(torch.utils.data.DataLoader(ds, batch_sampler=chunks, collate_fn=collate, num_workers=workers,
                                             prefetch_factor=4, persistent_workers=False))
-
-
-def check_dataset_has_cameras(args: TrainArgs) -> None:
-    """A camera encoder trains on a dataset recorded with cameras: DatasetError naming the first run without."""
-    store = open_store(args.data)
-    for r in store.manifest["runs"]:
-        if store.runs[r["name"]].get("format") == "opv2v":
-            if not store.runs[r["name"]]["cameras"]:
-                raise DatasetError(f"{store.runs[r['name']]['source']}: OPV2V scenario without camera images "
-                                   f"(<timestamp>_camera0..3.png); --encoder {args.encoder} trains on camera images")
-            continue
-        info = args.data / r["name"] / "run.json"
-        if info.is_file() and not json.loads(info.read_text()).get("cameras", False):
-            raise DatasetError(f"{info}: run {r['name']} was recorded without cameras; --encoder {args.encoder} "
-                               "trains on camera images: record the dataset with `v2vsim dataset ... --cameras "
-                               "--set perception.modality=camera` (scripts/camera_zoo.sh)")
-
-
-def cache_encoder(args: TrainArgs, log) -> tuple[nn.Module, str]:
-    """The encoder that fills the feature cache, and where its weights come from: the `single` stage's
-    output under --work, or (when --work has none) the encoder of the zoo at --out, so that a cache can
-    be made for an existing zoo (e.g. to train `extrapolate` on top of it)."""
-    if stage_file(args, "single").is_file():
-        return build_stage_model(args, SPECS["none"]).encoder, str(stage_file(args, "single"))
-    entry = zoo.zoo_entry(args.encoder, args.preset, args.out)
-    path = None if entry is None else zoo.method_file(entry, "encoder", args.out, args.encoder, args.preset)
-    if path is None:  # neither: the usual "train single first" error
-        load_stage_state(args, "single")
-    encoder = build_training_model(args, "none").encoder
-    encoder.load_state_dict(_prefixed(zoo_state(args, "encoder"), "encoder."))
-    print(f"[cache] {stage_file(args, 'single')} does not exist: encoding with the zoo's encoder {path}",
-          file=log, flush=True)
-    return encoder, str(path)
-
-
-def check_cache_grid(cache: FeatureCache, args: TrainArgs) -> None:
-    """A cache holds one grid's features: refuse one made at another grid than this training's."""
-    cells = train_cells(args)
-    if cells is not None and tuple(cache.shape[-2:]) != (cells, cells):
-        raise DatasetError(f"{args.work / 'cache'}: features of a {cache.shape[-1]} x {cache.shape[-1]} grid, this "
-                           f"training is at {cells} x {cells}; use another --work (or rebuild its cache)")
-
-
-def check_cache_encoder(args: TrainArgs, spec: StageSpec, log) -> None:
-    """The extrapolate stage's inputs: the method in the zoo (--out), and a feature cache under --work made by
-    the encoder the zoo's methods were trained on."""
-    zoo_state(args, spec.methods[0])
-    if not (args.work / "cache" / "index.json").is_file():
-        raise DatasetError(f"{args.work / 'cache'}: no feature cache; make it first: `v2vsim train --data {args.data} "
-                           f"--stage cache --out {args.out} --work {args.work}`")
-    cached = read_cache_encoder(args.work / "cache")
-    if cached is None:
-        print(f"[{EXTRAPOLATE}] {args.work / 'cache'} does not record its encoder (made before that was recorded): "
-              "assuming it is the zoo's", file=log, flush=True)
-        return
-    mine = encoder_fingerprint(_prefixed(zoo_state(args, "encoder"), "encoder."))
-    if cached["fingerprint"] != mine:
-        raise ValueError(f"{args.work / 'cache'}: made by the encoder of {cached['source']}, not by the encoder of "
-                         f"the zoo at {args.out} whose methods this stage extends; rebuild the cache for this zoo "
-                         f"(`v2vsim train --stage cache --out {args.out}` with a --work without single/final.pt) "
-                         "or use the zoo trained with this --work")
-
-
-def on_wire(args: TrainArgs, spec: StageSpec) -> StageSpec:
-    """--wire-ratio R: an intermediate fusion stage trained on the ratio-R wire (its compressor from the zoo; 1:
-    uncompressed) into its own checkpoint <method>_r<R>.pt (manifest "wire_methods"), the one runs with
-    comm.channel_compression: R load; on the zoo's own wire ratio it is the stage as usual."""
-    if args.wire_ratio < 1 or spec.name == EXTRAPOLATE or spec.inputs != "cache" or len(spec.methods) != 1 \
-            or not is_intermediate(spec.methods[0]):
-        raise ValueError(f"--wire-ratio {args.wire_ratio}: trains an intermediate fusion method "
-                         f"({', '.join(intermediate_methods())}) on another wire; stage {spec.name!r} fuses no "
-                         "neighbours' features (the ratio must be >= 1)")
-    entry = zoo.zoo_entry(args.encoder, args.preset, args.out)
-    if args.wire_ratio == zoo.wire_ratio(entry):
-        return spec
-    return dataclasses.replace(spec, wire_ratio=args.wire_ratio)
-
-
-def export(args: TrainArgs, spec: StageSpec, state: dict, history: list, wall_s: float, manifest: dict) -> Path:
-    """Write the stage's checkpoint into the zoo and its manifest entry (the extrapolate stage: an add-on
-    file "<method>_extrapolate.pt" under the zoo entry's "extrapolation", beside the method's own file)."""
-    extrapolate = spec.name == EXTRAPOLATE
-    name = "single.pt" if spec.name == "single" else f"{spec.name}.pt"
-    if extrapolate:
-        name = f"{spec.methods[0]}_{EXTRAPOLATE}.pt"
-    if spec.name == COMPRESS:
-        name = f"compressor_r{spec.ratio}.pt"
-    if spec.wire_ratio is not None:
-        name = f"{spec.name}_r{spec.wire_ratio}.pt"
-    path = args.out / zoo.zoo_name(args.encoder, args.preset) / name
-    cells = train_cells(args)
-    config = {"spec": dataclasses.asdict(spec), "seed": args.seed, "encoder": args.encoder, "preset": args.preset,
-              "cells": cells, "bf16": args.bf16, "image_backbone": train_image_backbone(args)}
-    zoo.save_checkpoint(path, state, encoder=args.encoder, preset=args.preset, stage=spec.name,
-                        methods=list(spec.methods), config=config)
-    runs = {s: [r["name"] for r in runs_of(manifest, s)] for s in ("train", "val", "eval")}
-    info = {
-        "stage": spec.name,
-        "command": args.command or f"v2vsim train --data {args.data} --stage {spec.name} --out {args.out}",
-        "data": {"root": str(args.data), "runs": runs,
-                 "train_frames": sum(r["frames"] for r in runs_of(manifest, "train"))},
-        "epochs": spec.epochs, "samples_per_epoch": spec.samples_per_epoch, "batch": spec.batch,
-        "wall_s": round(wall_s, 1), "device": args.device, "threads": args.threads, "bf16": args.bf16,
-        "validation": history[-1]["validation"] if history else None,
-    }
-    if spec.wire_ratio is not None:  # trained on another wire than the zoo's (zoo.rebuild_command repeats it)
-        info["wire_ratio"] = spec.wire_ratio
-    if extrapolate:  # the checkpoint it was trained on top of (build_extrapolation refuses another one)
-        entry = zoo.zoo_entry(args.encoder, args.preset, args.out)
-        base = zoo.method_file(entry, spec.methods[0], args.out, args.encoder, args.preset)
-        info["extrapolates"] = {"method": spec.methods[0], "file": base.name,
-                                "sha256": entry["files"][base.name]["sha256"]}
-    zoo.register(path, encoder=args.encoder, preset=args.preset, methods=[] if extrapolate else list(spec.methods),
-                 info=info, root=args.out, provides_encoder=spec.name == "single",
-                 extrapolates=tuple(spec.methods) if extrapolate else (), cells=cells,
-                 compresses=spec.ratio if spec.name == COMPRESS else None, trained_wire=spec.wire_ratio,
-                 image_backbone=train_image_backbone(args))
-    if spec.name == COMPRESS and spec.ratio == WIRE_RATIO:  # every later stage trains on this wire
-        zoo.set_wire_ratio(args.encoder, args.preset, WIRE_RATIO, args.out)
-    return path
 
 
 def main_train(args: TrainArgs, log=sys.stderr) -> int:

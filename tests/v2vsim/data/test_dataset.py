@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from models.registry import build_cooperative
+from models.build import build_cooperative
 from v2vsim.config import load_scenario
 from v2vsim.data.layout import DatasetError, frame_path, pack_masks, unpack_masks
 from v2vsim.data.record import parse_seeds, record_dataset, record_frame

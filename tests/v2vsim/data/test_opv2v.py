@@ -25,7 +25,8 @@ from v2vsim.data.carla_frames import (
     pose_to_carla,
 )
 from v2vsim.data.layout import DatasetError, frame_path
-from v2vsim.data.opv2v import OPV2VStore, export_opv2v
+from v2vsim.data.opv2v_read import OPV2VStore
+from v2vsim.data.opv2v_write import export_opv2v
 from v2vsim.data.pcd import read_pcd, write_pcd
 from v2vsim.data.torch_dataset import CooperativeDataset, open_store
 

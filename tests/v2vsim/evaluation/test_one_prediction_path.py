@@ -10,7 +10,7 @@ import math
 import numpy as np
 import torch
 
-from models.registry import build_cooperative
+from models.build import build_cooperative
 from v2vsim.comm.codec import Message, decode, encode
 from v2vsim.data.layout import frame_path, unpack_masks
 from v2vsim.data.torch_dataset import CooperativeDataset

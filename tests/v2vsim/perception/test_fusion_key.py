@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from models.registry import build_cooperative
+from models.build import build_cooperative
 from v2vsim.perception.fuse import FusionInputs, fusion_key, predict
 
 METHODS = ("none", "late", "early", "fcooper", "cobevt")

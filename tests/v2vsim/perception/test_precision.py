@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from models.registry import build_cooperative
+from models.build import build_cooperative
 from v2vsim.config import ConfigError, load_scenario
 from v2vsim.perception import precision as P
 from v2vsim.perception.encode import encode_points, late_outputs

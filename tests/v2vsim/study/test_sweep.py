@@ -15,6 +15,7 @@ import pytest
 
 from v2vsim.cli import main
 from v2vsim.config import ConfigError, parse_override
+from v2vsim.study import plan as plan_mod
 from v2vsim.study import runs as runs_mod
 from v2vsim.study.grid import base_overrides, parse_axes, parse_axis, parse_seeds, split_values
 from v2vsim.study.stats import interval, paired_clusters
@@ -103,7 +104,7 @@ def test_cartesian_product_with_the_same_seeds_at_every_point(tmp_path: Path) ->
     assert base_overrides([], [], "none,late") == ["output.rerun=false", "perception.methods=[none,late]"]
 
 
-def _fake_metrics(spec: runs_mod.RunSpec) -> dict:
+def _fake_metrics(spec: plan_mod.RunSpec) -> dict:
     p = float(spec.point.texts[0]) if spec.point.texts else 0.5  # comm.drop.p
     methods = {}
     for i, m in enumerate(("none", "attfuse", "cobevt")):
@@ -118,7 +119,7 @@ class FakeJob:
     """A run that has finished by the time it is polled: writes what `v2vsim run` would (replays started
     together: what each would)."""
 
-    def __init__(self, spec: runs_mod.RunSpec, code: int = 0, status: str = "complete") -> None:
+    def __init__(self, spec: plan_mod.RunSpec, code: int = 0, status: str = "complete") -> None:
         self.code = code
         self.interrupted = False
         for other in spec.together:
@@ -149,7 +150,7 @@ class FakeStarter:
         self.started: list[tuple[str, int]] = []
         self.fail, self.partial, self.interrupt_at = fail, partial, interrupt_at
 
-    def __call__(self, spec: runs_mod.RunSpec) -> FakeJob:
+    def __call__(self, spec: plan_mod.RunSpec) -> FakeJob:
         key = (spec.point.texts[0] if spec.point.texts else "", spec.seed)
         if self.interrupt_at is not None and len(self.started) == self.interrupt_at:
             raise KeyboardInterrupt
@@ -258,7 +259,7 @@ class SlowStarter(FakeStarter):
         self.live: list[FakeJob] = []
         self.most = 0
 
-    def __call__(self, spec: runs_mod.RunSpec) -> FakeJob:
+    def __call__(self, spec: plan_mod.RunSpec) -> FakeJob:
         job = super().__call__(spec)
         polls = iter([None, None, 0])
         job.poll = lambda: self._poll(job, polls)  # type: ignore[method-assign]
@@ -333,17 +334,17 @@ def test_points_that_differ_only_in_receiver_side_keys_replay_the_first_ones_rec
 def test_a_recordings_replays_run_in_as_few_processes_as_fill_the_replay_slots(tmp_path: Path) -> None:
     """One seed, --jobs 1 (two replay slots): the 11 replays of the README grid in two processes of neighbouring
     points; five seeds: one process per seed; --jobs 3 with one seed: six."""
-    assert runs_mod.batches_per_recording(recordings=1, replays=11, jobs=1) == 2
-    assert runs_mod.batches_per_recording(recordings=5, replays=11, jobs=1) == 1
-    assert runs_mod.batches_per_recording(recordings=1, replays=11, jobs=3) == 6
-    assert runs_mod.batches_per_recording(recordings=1, replays=1, jobs=4) == 1
+    assert plan_mod.batches_per_recording(recordings=1, replays=11, jobs=1) == 2
+    assert plan_mod.batches_per_recording(recordings=5, replays=11, jobs=1) == 1
+    assert plan_mod.batches_per_recording(recordings=1, replays=11, jobs=3) == 6
+    assert plan_mod.batches_per_recording(recordings=1, replays=1, jobs=4) == 1
     grid = ("comm.latency_ms.mean=0,100,200,300", "comm.drop.p=0,0.1,0.3")
     d = prepare(SweepArgs(SCENARIO, grid, "10", tmp_path / "one", frames=2, jobs=1))
     replays = [s for s in d.specs if s.replayed]
     # contiguous in grid order, cut between two latencies (0 and 100 | 200 and 300), not inside one
     assert len(replays) == 11 and [s.batch for s in replays] == [0] * 5 + [1] * 6
-    assert runs_mod.cut_points([(lat, p) for lat in "abcd" for p in "xyz"][1:], 3) == [5, 8]
-    assert runs_mod.cut_points([("a",)] * 5, 2) == [2]  # one value: equal halves
+    assert plan_mod.cut_points([(lat, p) for lat in "abcd" for p in "xyz"][1:], 3) == [5, 8]
+    assert plan_mod.cut_points([("a",)] * 5, 2) == [2]  # one value: equal halves
     d = prepare(SweepArgs(SCENARIO, grid, "10-14", tmp_path / "five", frames=2, jobs=1))
     batches = {}
     for s in d.specs:
@@ -466,7 +467,7 @@ def test_per_frame_values_are_keyed_by_the_runs_frame_indices_and_run_intervals_
     from v2vsim.study.rows import collect, metric_columns
 
     (pt,) = points(parse_axes(["comm.drop.p=0"]))
-    spec = runs_mod.RunSpec(pt, 0, tmp_path, (), {})
+    spec = plan_mod.RunSpec(pt, 0, tmp_path, (), {})
     late = {"iou_vehicle": 0.5, "iou_vehicle_counts": [[1, 2], [3, 4], [0, 0]], "iou_vehicle_frames": [0, 2, 3],
             "vs_none": {"iou_vehicle": {"diff": 0.1, "low": 0.0, "high": 0.2, "excludes_zero": False}}}
     old = {"iou_vehicle": 0.4, "iou_vehicle_counts": [[1, 4], [2, 4]]}  # written before the frame indices
@@ -609,7 +610,7 @@ def test_retrained_weights_rerun_every_run(tmp_path: Path, monkeypatch: pytest.M
     again = FakeStarter()
     assert sweep(_args(out), start=again, stream=io.StringIO()) == 0 and not again.started
     assert json.loads(next(out.glob("runs/*/seed0/sweep_run.json")).read_text())["weights"]  # the manifest's sha256
-    monkeypatch.setattr(runs_mod, "weights_fingerprint", lambda *a: "another zoo")
+    monkeypatch.setattr(plan_mod, "weights_fingerprint", lambda *a: "another zoo")
     again = FakeStarter()
     assert sweep(_args(out), start=again, stream=io.StringIO()) == 0 and len(again.started) == 6
 
@@ -617,7 +618,7 @@ def test_retrained_weights_rerun_every_run(tmp_path: Path, monkeypatch: pytest.M
 def test_a_key_added_since_a_run_counts_as_its_default() -> None:
     """A finished run recorded before comm.share (or any key) existed is the same run while the key is at its
     default; a non-default value, a changed value or a key that went away is another run."""
-    from v2vsim.study.runs import effective_config, same_config
+    from v2vsim.study.plan import effective_config, same_config
 
     new = effective_config(Path(SCENARIO), [])
     old = json.loads(json.dumps(new))

@@ -115,7 +115,7 @@ def camera_dataset(tmp_path_factory: pytest.TempPathFactory):
 def test_camera_samples_round_trip_and_a_few_steps_lower_the_loss(camera_dataset, tmp_path) -> None:
     import numpy as np
 
-    from v2vsim.data.torch_dataset import FrameStore
+    from v2vsim.data.store import FrameStore
 
     ds = CooperativeDataset(camera_dataset, "train", max_agents=2, with_points=False, with_images=True)
     s = ds[0]

@@ -1,4 +1,4 @@
-"""What every agent process shares: its arguments, the zenoh bus, liveliness, signals, progress.
+"""The zenoh bus of one run, as every agent process uses it (`Bus`): topology, keys, liveliness, control messages.
 
 Topology: with transport.mode "peer" (default) every process of a run listens on its own
 loopback port and connects to every other one: a full mesh of zenoh peers, no broker, as V2V
@@ -25,17 +25,12 @@ kinds pass through untouched: the codec signs and checks those.
 
 from __future__ import annotations
 
-import argparse
-import dataclasses
 import json
-import signal
 import sys
 import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import zenoh
@@ -50,114 +45,13 @@ from v2vsim.comm.control import (
     process_id,
     seal,
 )
-from v2vsim.comm.identity import Identity, IdentityError, parse_identity
-from v2vsim.comm.transport import TransportError, message_key, open_session, parse_key
-from v2vsim.config import ConfigError, Scenario, load_scenario
+from v2vsim.comm.transport import message_key, parse_key
 
 START_TIMEOUT_S = 300.0  # agents import torch and build their models before they are ready
 DRIVER_GRACE_S = 1.0  # after the driver's token drops, how long its `bye` or `done` may still take to arrive
 DONE_GRACE_S = 5.0  # without comm.auth, an unverifiable `done` is believed after this long without a world
 HEARTBEAT_S = 1.0  # under comm.auth every process says a signed hello this often
 SILENCE_S = 8.0  # under comm.auth, a process without a hello for this long is gone (its token notwithstanding)
-
-
-def read_key(path: str | None) -> bytes | None:
-    """The run key of comm.auth.key_file (None: no shared key)."""
-    return None if path is None else open(path, "rb").read().strip()
-
-
-def run_signer(args: AgentArgs) -> Signer | None:
-    """What this process signs with and checks others' messages by: its Identity under comm.auth.identity
-    per_process, the shared run key under comm.auth.key_file, None with comm.auth off."""
-    return args.identity if args.identity is not None else read_key(args.scenario.comm.auth.key_file)
-
-
-def load_identity(spec: str, sc: Scenario, run_id: str, name: str) -> Identity:
-    """The Identity the runner issued this process: '-' = on stdin (a local child), else an identity file
-    (an agent on another host, docs/cluster.md). IdentityError says what is wrong."""
-    if spec == "-":
-        text, where = sys.stdin.read(), "the identity on stdin"
-    else:
-        try:
-            text, where = Path(spec).read_text(), spec
-        except OSError as e:
-            raise IdentityError(f"--identity {spec}: cannot read it: {e.strerror or e}") from None
-    return parse_identity(text, where, run_id=run_id, name=name)
-
-
-@dataclass(frozen=True)
-class AgentArgs:
-    scenario: Scenario
-    scenario_path: str
-    overrides: tuple[str, ...]
-    run_id: str
-    listen: str  # peer mode: this process's own endpoint
-    peers: tuple[str, ...]  # peer mode: every other process's endpoint
-    cavs: tuple[str, ...]  # every CAV agent of the run
-    egos: tuple[str, ...]  # the fusing CAVs
-    cav: str  # this process's CAV id ('' for the driver)
-    frames: int
-    out: str
-    identity: Identity | None = None  # comm.auth.identity per_process: this process's credentials
-
-
-def parse_agent_args(role: str, argv: list[str] | None = None) -> AgentArgs:
-    p = argparse.ArgumentParser(prog=f"v2vsim-{role}")
-    p.add_argument("scenario")
-    p.add_argument("--set", dest="overrides", action="append", default=[])
-    p.add_argument("--run-id", required=True)
-    p.add_argument("--listen", default="", help="peer mode: this process's zenoh endpoint")
-    p.add_argument("--peer", dest="peers", action="append", default=[], help="peer mode: another process's endpoint")
-    p.add_argument("--cavs", default="", help="comma-separated CAV ids of the run")
-    p.add_argument("--egos", default="", help="comma-separated ego CAV ids")
-    p.add_argument("--cav", default="")
-    p.add_argument("--frames", type=int, default=0)
-    p.add_argument("--out", default="")
-    p.add_argument("--identity", default=None,
-                   help="comm.auth.identity per_process: '-' (on stdin) or the identity file the runner issued")
-    a = p.parse_args(argv)
-    try:
-        sc = load_scenario(a.scenario, a.overrides)
-    except ConfigError as e:
-        print(f"v2vsim-{role}: error: {e}", file=sys.stderr)
-        sys.exit(2)
-    identity = None
-    name = f"{role}.{a.cav or 'main'}"
-    if sc.comm.auth.identity == "per_process":
-        if a.identity is None:
-            print(f"v2vsim-{role}: error: comm.auth.identity is per_process and no --identity was given (the "
-                  "runner prints each remote agent's command line with its identity file)", file=sys.stderr)
-            sys.exit(2)
-        try:
-            identity = load_identity(a.identity, sc, a.run_id, name)
-        except IdentityError as e:
-            print(f"v2vsim-{role}: error: {e}", file=sys.stderr)
-            sys.exit(2)
-    split = lambda s: tuple(x for x in s.split(",") if x)  # noqa: E731
-    return AgentArgs(scenario=sc, scenario_path=a.scenario, overrides=tuple(a.overrides), run_id=a.run_id,
-                     listen=a.listen, peers=tuple(a.peers), cavs=split(a.cavs), egos=split(a.egos), cav=a.cav,
-                     frames=a.frames or sc.frames, out=a.out, identity=identity)
-
-
-def agent_argv(args_scenario: str, overrides: Iterable[str], run_id: str, listen: str, peers: Iterable[str],
-               cavs: Iterable[str], egos: Iterable[str], frames: int, cav: str = "", out: str = "",
-               identity: str = "") -> list[str]:
-    """The command-line tail that `parse_agent_args` reads (the runner builds it)."""
-    argv = [args_scenario, "--run-id", run_id, "--cavs", ",".join(cavs), "--egos", ",".join(egos),
-            "--frames", str(frames)]
-    if identity:
-        argv += ["--identity", identity]
-    for o in overrides:
-        argv += ["--set", o]
-    if listen:
-        argv += ["--listen", listen]
-    for p in peers:
-        argv += ["--peer", p]
-    if cav:
-        argv += ["--cav", cav]
-    if out:
-        argv += ["--out", out]
-    return argv
 
 
 class Bus:
@@ -425,47 +319,3 @@ class Bus:
             if undeclare is not None:
                 undeclare()
         self.session.close()
-
-
-class Stop(Exception):
-    """Raised in the main thread on SIGINT/SIGTERM so that `finally` blocks run and files get written."""
-
-
-def _raise_stop(signum: int, frame: object) -> None:
-    raise Stop(signum)
-
-
-def run_agent(args: AgentArgs, role: str, ident: str, body: Callable[[Bus], int]) -> int:
-    """Open the bus, run `body`, and turn every expected failure into a one-line error."""
-    signal.signal(signal.SIGTERM, _raise_stop)
-    signal.signal(signal.SIGINT, _raise_stop)
-    tcfg = args.scenario.transport
-    if tcfg.mode == "client":
-        tcfg, peers = dataclasses.replace(tcfg, listen=()), ()
-    else:
-        tcfg, peers = dataclasses.replace(tcfg, listen=(args.listen,) if args.listen else ()), args.peers
-    try:
-        session = open_session(tcfg, peers=peers)
-    except TransportError as e:
-        print(f"v2vsim-{role}: error: {e}", file=sys.stderr)
-        return 2
-    bus = Bus(session, args.run_id, f"{role}.{ident}", key=run_signer(args),
-              policy=ControlPolicy.for_run(args.cavs, args.egos))
-    code, why = 1, "crashed"
-    try:
-        code, why = body(bus), "finished"
-        return code
-    except Stop as stop:
-        code, why = 128 + int(stop.args[0]), f"stopped by signal {stop.args[0]}"
-        return code  # the shell's convention for "ended by signal N"
-    except TimeoutError as e:
-        print(f"v2vsim-{role} {ident}: error: {e}", file=sys.stderr)
-        code, why = 1, str(e)
-        return 1
-    except BaseException as e:
-        why = f"{type(e).__name__}: {e}"
-        raise
-    finally:
-        bus.say_bye(code, why)
-        bus.close()
-

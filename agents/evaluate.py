@@ -3,8 +3,8 @@ receiver-side keys: no SUMO, sensing or encoding; the same decoder, channel mode
 plots as a live run (agents.ego.ego_loop itself, over agents.ego_replay.ReplayBus). docs/run.md "Record once,
 evaluate many".
 
-Receiver-side keys (RECEIVER_SIDE) may differ from the recording; any other key that differs changed what the
-CAVs sent, and is a ConfigError naming it (exit 2).
+Receiver-side keys (v2vsim.recording.messages.RECEIVER_SIDE) may differ from the recording; any other key that
+differs changed what the CAVs sent, and is a ConfigError naming it (exit 2).
 """
 
 from __future__ import annotations
@@ -20,23 +20,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from v2vsim.config import ConfigError, Scenario, check_output_dir, load_scenario
+from v2vsim.recording.messages import receiver_side
 
 if TYPE_CHECKING:
-    from agents.common import AgentArgs
+    from agents.args import AgentArgs
     from v2vsim.recording.messages import Recording
-
-# What acts only at the receiver: a key equal to one of these, or under one (dotted prefix).
-RECEIVER_SIDE = (
-    "name", "duration_s", "comm.range_m", "comm.latency_ms", "comm.drop", "comm.bandwidth_mbps", "comm.max_age_ms",
-    "comm.fusion_deadline_ms", "comm.compensation", "comm.pose_noise", "comm.channel", "comm.medium",
-    "perception.methods", "evaluation", "output", "transport.pipeline",
-    "transport.mode", "transport.connect", "transport.listen",  # how the processes met: no bus in a replay
-)
-
-
-def receiver_side(key: str) -> bool:
-    return any(key == r or key.startswith(r + ".") for r in RECEIVER_SIDE)
-
 
 def _same_file(path: str, sha256: str) -> bool:
     from models.zoo import sha256 as file_sha256
@@ -109,9 +97,9 @@ def evaluate_points(recording: Path, points: Sequence[tuple[Sequence[str], Path]
 def _replay_together(rec: Recording, runs: list[AgentArgs], frames: int, labels: list[str]) -> int:
     """Every run's ego_loop on its own thread over one ReplayShare; Ctrl-C stops them all (each writes its
     results as interrupted)."""
-    from agents.common import Stop
     from agents.ego import ego_loop
     from agents.ego_replay import ReplayBus, ReplayShare
+    from agents.lifecycle import Stop
 
     share = ReplayShare(rec, len(runs))
     codes = [0] * len(runs)
@@ -214,7 +202,7 @@ def _prepare(rec: Recording, recorded: int, overrides: list[str], out: Path, fra
     from v2vsim.perception.build import check_scenario
 
     check_scenario(sc)
-    from agents.common import AgentArgs
+    from agents.args import AgentArgs
 
     args = AgentArgs(scenario=sc, scenario_path=str(source), overrides=tuple(sc.overrides), run_id=h["run_id"],
                      listen="", peers=(), cavs=tuple(h["cavs"]), egos=(h["ego"],), cav=h["ego"], frames=n,

@@ -1,0 +1,114 @@
+"""The command line every agent process reads (`AgentArgs`, built by the runner with `agent_argv`), and what it
+signs with under comm.auth: the shared run key (comm.auth.key_file) or its own Identity (comm.auth.identity
+per_process: on stdin from a local runner, or an identity file on another host, docs/cluster.md)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+from v2vsim.comm.codec import Signer
+from v2vsim.comm.identity import Identity, IdentityError, parse_identity
+from v2vsim.config import ConfigError, Scenario, load_scenario
+
+
+def read_key(path: str | None) -> bytes | None:
+    """The run key of comm.auth.key_file (None: no shared key)."""
+    return None if path is None else open(path, "rb").read().strip()
+
+
+def run_signer(args: AgentArgs) -> Signer | None:
+    """What this process signs with and checks others' messages by: its Identity under comm.auth.identity
+    per_process, the shared run key under comm.auth.key_file, None with comm.auth off."""
+    return args.identity if args.identity is not None else read_key(args.scenario.comm.auth.key_file)
+
+
+def load_identity(spec: str, sc: Scenario, run_id: str, name: str) -> Identity:
+    """The Identity the runner issued this process: '-' = on stdin (a local child), else an identity file
+    (an agent on another host, docs/cluster.md). IdentityError says what is wrong."""
+    if spec == "-":
+        text, where = sys.stdin.read(), "the identity on stdin"
+    else:
+        try:
+            text, where = Path(spec).read_text(), spec
+        except OSError as e:
+            raise IdentityError(f"--identity {spec}: cannot read it: {e.strerror or e}") from None
+    return parse_identity(text, where, run_id=run_id, name=name)
+
+
+@dataclass(frozen=True)
+class AgentArgs:
+    scenario: Scenario
+    scenario_path: str
+    overrides: tuple[str, ...]
+    run_id: str
+    listen: str  # peer mode: this process's own endpoint
+    peers: tuple[str, ...]  # peer mode: every other process's endpoint
+    cavs: tuple[str, ...]  # every CAV agent of the run
+    egos: tuple[str, ...]  # the fusing CAVs
+    cav: str  # this process's CAV id ('' for the driver)
+    frames: int
+    out: str
+    identity: Identity | None = None  # comm.auth.identity per_process: this process's credentials
+
+
+def parse_agent_args(role: str, argv: list[str] | None = None) -> AgentArgs:
+    p = argparse.ArgumentParser(prog=f"v2vsim-{role}")
+    p.add_argument("scenario")
+    p.add_argument("--set", dest="overrides", action="append", default=[])
+    p.add_argument("--run-id", required=True)
+    p.add_argument("--listen", default="", help="peer mode: this process's zenoh endpoint")
+    p.add_argument("--peer", dest="peers", action="append", default=[], help="peer mode: another process's endpoint")
+    p.add_argument("--cavs", default="", help="comma-separated CAV ids of the run")
+    p.add_argument("--egos", default="", help="comma-separated ego CAV ids")
+    p.add_argument("--cav", default="")
+    p.add_argument("--frames", type=int, default=0)
+    p.add_argument("--out", default="")
+    p.add_argument("--identity", default=None,
+                   help="comm.auth.identity per_process: '-' (on stdin) or the identity file the runner issued")
+    a = p.parse_args(argv)
+    try:
+        sc = load_scenario(a.scenario, a.overrides)
+    except ConfigError as e:
+        print(f"v2vsim-{role}: error: {e}", file=sys.stderr)
+        sys.exit(2)
+    identity = None
+    name = f"{role}.{a.cav or 'main'}"
+    if sc.comm.auth.identity == "per_process":
+        if a.identity is None:
+            print(f"v2vsim-{role}: error: comm.auth.identity is per_process and no --identity was given (the "
+                  "runner prints each remote agent's command line with its identity file)", file=sys.stderr)
+            sys.exit(2)
+        try:
+            identity = load_identity(a.identity, sc, a.run_id, name)
+        except IdentityError as e:
+            print(f"v2vsim-{role}: error: {e}", file=sys.stderr)
+            sys.exit(2)
+    split = lambda s: tuple(x for x in s.split(",") if x)  # noqa: E731
+    return AgentArgs(scenario=sc, scenario_path=a.scenario, overrides=tuple(a.overrides), run_id=a.run_id,
+                     listen=a.listen, peers=tuple(a.peers), cavs=split(a.cavs), egos=split(a.egos), cav=a.cav,
+                     frames=a.frames or sc.frames, out=a.out, identity=identity)
+
+
+def agent_argv(args_scenario: str, overrides: Iterable[str], run_id: str, listen: str, peers: Iterable[str],
+               cavs: Iterable[str], egos: Iterable[str], frames: int, cav: str = "", out: str = "",
+               identity: str = "") -> list[str]:
+    """The command-line tail that `parse_agent_args` reads (the runner builds it)."""
+    argv = [args_scenario, "--run-id", run_id, "--cavs", ",".join(cavs), "--egos", ",".join(egos),
+            "--frames", str(frames)]
+    if identity:
+        argv += ["--identity", identity]
+    for o in overrides:
+        argv += ["--set", o]
+    if listen:
+        argv += ["--listen", listen]
+    for p in peers:
+        argv += ["--peer", p]
+    if cav:
+        argv += ["--cav", cav]
+    if out:
+        argv += ["--out", out]
+    return argv
