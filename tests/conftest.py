@@ -21,8 +21,10 @@ def pytest_configure(config: pytest.Config) -> None:
             compileall.compile_dir(REPO / package, quiet=1)
 
 
-# Tests that start real processes or install packages, longest first (pytest --durations): started first, they
-# leave the short unit tests to fill both workers at the end instead of a long test running alone as the tail.
+# Tests that start real processes or install packages, longest first (pytest --durations). xdist's default (load)
+# scheduling deals the first quarter of the list out to the workers in turn: the long tests run on both workers
+# from the start, and the short unit tests fill both at the end instead of a long test running alone as the tail.
+# (--dist worksteal would hand the whole first half, i.e. every long test, to one worker.)
 _LONG_FIRST = ("tests/test_wheel.py", "tests/agents/test_identity.py", "tests/v2vsim/study/test_sweep.py",
                "tests/agents/test_replay.py", "tests/agents/test_run.py", "tests/test_fusion_plugin.py",
                "tests/v2vsim/env/", "tests/v2vsim/comm/test_fuzz.py", "tests/v2vsim/training/", "tests/agents/")
