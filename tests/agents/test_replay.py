@@ -161,6 +161,8 @@ def test_record_messages_is_refused_in_realtime(tmp_path: Path) -> None:
 
 
 def test_a_cav_killed_mid_run_is_lost_at_the_same_frame_in_the_replay(tmp_path: Path) -> None:
+    """A CAV killed mid-run (SIGKILL) is noticed, the run finishes every frame without it, and the replay loses
+    it at the same frame (this run also stands for the live-only kill test it replaced)."""
     from tests.agents.test_run import Run
 
     out = tmp_path / "live"
@@ -173,6 +175,9 @@ def test_a_cav_killed_mid_run_is_lost_at_the_same_frame_in_the_replay(tmp_path: 
     assert run.finish() == 0, "".join(run.log)
     live = json.loads((out / "metrics.json").read_text())
     assert "cav2" in live["lost_agents"] and live["status"] == "complete"
+    assert live["frames"] == 30 and 10 <= live["lost_agents"]["cav2"] < 30
+    assert "cav2" in live["comm"]["lost_agents"]
+    assert live["methods"]["cobevt"]["frames"] == 30
     assert Recording(out).header["lost_agents"] == live["lost_agents"]
     replay = _replay(out, tmp_path / "replay")
     assert _scores(replay) == _scores(live)

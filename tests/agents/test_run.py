@@ -196,21 +196,6 @@ def test_the_camera_scenario_runs_its_shipped_zoo(tmp_path: Path) -> None:
     assert "No recording" in report and not (out / "recording.rrd").exists()
 
 
-def test_killed_cav_is_noticed_and_the_run_finishes(tmp_path: Path) -> None:
-    out = tmp_path / "run"
-    run = Run("--frames", "60", "--out", str(out), "--set", "cavs.count=3", "--methods", "none,cobevt")
-    run.wait_frames(20)
-    victims = [p for p in run.children() if "agents.cav" in " ".join(p.cmdline()) and "cav2" in p.cmdline()]
-    assert len(victims) == 1
-    victims[0].send_signal(signal.SIGKILL)
-    assert run.finish() == 0, "".join(run.log)
-    m = _metrics(out)
-    assert m["frames"] == 60 and m["status"] == "complete"
-    assert "cav2" in m["lost_agents"] and 20 <= m["lost_agents"]["cav2"] < 60
-    assert "cav2" in m["comm"]["lost_agents"]
-    assert m["methods"]["cobevt"]["frames"] == 60
-
-
 def test_ctrl_c_stops_every_process_and_writes_partial_report(tmp_path: Path) -> None:
     out = tmp_path / "run"
     run = Run("--frames", "400", "--out", str(out), "--set", "cavs.count=2", "--methods", "none,cobevt")
@@ -447,10 +432,12 @@ def test_realtime_clock_runs_on_the_wall_clock(tmp_path: Path) -> None:
 
 def test_a_cav_that_leaves_ends_its_agent_and_the_run_goes_on(tmp_path: Path) -> None:
     """In scenarios/intersection.yaml (seed 0, the canonical CAV placement: cavs.meet.trials=1) cav0
-    leaves the network at frame 307 and cav1 at 372."""
+    leaves the network at frame 307 and cav1 at 372. A sparse LiDAR (4 x 128 points): the traffic is what counts
+    here, and 330 frames of the full sweep cost a third more time."""
     out = tmp_path / "run"
     run = Run("--frames", "330", "--out", str(out), "--set", "cavs.count=2", "--set", "cavs.ego=[cav1]",
-              "--set", "cavs.meet.trials=1", "--methods", "none", "--set", "output.rerun=false")
+              "--set", "cavs.meet.trials=1", "--methods", "none", "--set", "output.rerun=false",
+              "--set", "sensors.lidar.channels=4", "--set", "sensors.lidar.points_per_channel=128")
     assert run.finish() == 0, "".join(run.log)
     m = _metrics(out)
     assert m["ego"] == "cav1" and m["frames"] == 330 and m["status"] == "complete"
