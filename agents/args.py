@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from v2vsim.comm.codec import Signer
-from v2vsim.comm.identity import Identity, IdentityError, parse_identity
+from v2vsim.comm.identity import Identity, IdentityError, parse_identity, shared_run_key
 from v2vsim.config import ConfigError, Scenario, load_scenario
 
 
@@ -22,8 +22,14 @@ def read_key(path: str | None) -> bytes | None:
 
 def run_signer(args: AgentArgs) -> Signer | None:
     """What this process signs with and checks others' messages by: its Identity under comm.auth.identity
-    per_process, the shared run key under comm.auth.key_file, None with comm.auth off."""
-    return args.identity if args.identity is not None else read_key(args.scenario.comm.auth.key_file)
+    per_process, the shared run key under comm.auth.key_file (bound to this run instance), None with comm.auth
+    off."""
+    if args.identity is not None:
+        return args.identity
+    secret = read_key(args.scenario.comm.auth.key_file)
+    if secret is None or not args.run_instance:  # no instance: only a replay of a recording from before issue 45,
+        return secret  # whose messages were signed with the file's secret itself (a live agent must give one)
+    return shared_run_key(secret, args.run_id, args.run_instance)
 
 
 def load_identity(spec: str, sc: Scenario, run_id: str, name: str) -> Identity:
@@ -53,6 +59,7 @@ class AgentArgs:
     frames: int
     out: str
     identity: Identity | None = None  # comm.auth.identity per_process: this process's credentials
+    run_instance: str = ""  # this start of the run (v2vsim.comm.identity.new_run_instance): bound into signatures
 
 
 def parse_agent_args(role: str, argv: list[str] | None = None) -> AgentArgs:
@@ -69,6 +76,7 @@ def parse_agent_args(role: str, argv: list[str] | None = None) -> AgentArgs:
     p.add_argument("--out", default="")
     p.add_argument("--identity", default=None,
                    help="comm.auth.identity per_process: '-' (on stdin) or the identity file the runner issued")
+    p.add_argument("--run-instance", default="", help="this start of the run, as the runner printed it")
     a = p.parse_args(argv)
     try:
         sc = load_scenario(a.scenario, a.overrides)
@@ -87,18 +95,24 @@ def parse_agent_args(role: str, argv: list[str] | None = None) -> AgentArgs:
         except IdentityError as e:
             print(f"v2vsim-{role}: error: {e}", file=sys.stderr)
             sys.exit(2)
+    if sc.comm.auth.key_file is not None and not a.run_instance:
+        print(f"v2vsim-{role}: error: comm.auth.key_file signs for one run instance and no --run-instance was "
+              "given (the runner prints each remote agent's command line with it)", file=sys.stderr)
+        sys.exit(2)
     split = lambda s: tuple(x for x in s.split(",") if x)  # noqa: E731
     return AgentArgs(scenario=sc, scenario_path=a.scenario, overrides=tuple(a.overrides), run_id=a.run_id,
                      listen=a.listen, peers=tuple(a.peers), cavs=split(a.cavs), egos=split(a.egos), cav=a.cav,
-                     frames=a.frames or sc.frames, out=a.out, identity=identity)
+                     frames=a.frames or sc.frames, out=a.out, identity=identity, run_instance=a.run_instance)
 
 
 def agent_argv(args_scenario: str, overrides: Iterable[str], run_id: str, listen: str, peers: Iterable[str],
                cavs: Iterable[str], egos: Iterable[str], frames: int, cav: str = "", out: str = "",
-               identity: str = "") -> list[str]:
+               identity: str = "", run_instance: str = "") -> list[str]:
     """The command-line tail that `parse_agent_args` reads (the runner builds it)."""
     argv = [args_scenario, "--run-id", run_id, "--cavs", ",".join(cavs), "--egos", ",".join(egos),
             "--frames", str(frames)]
+    if run_instance:
+        argv += ["--run-instance", run_instance]
     if identity:
         argv += ["--identity", identity]
     for o in overrides:

@@ -141,8 +141,9 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None) -> int:
                          skipped=[m for m in methods if m not in models],
                          compensation=compensation_schemes(sc, list(models), extrapolations),
                          grid_cells=f, channels=c, wire_ratio=ratio)
-    tape = MessageTape(out_dir / "messages", sc, run_id=args.run_id, ego=me, cavs=list(args.cavs),
-                       frames=args.frames, kinds=kinds, side=[*side, *(["own"] if own_decoder is not None else [])],
+    tape = MessageTape(out_dir / "messages", sc, run_id=args.run_id, run_instance=args.run_instance, ego=me,
+                       cavs=list(args.cavs), frames=args.frames, kinds=kinds,
+                       side=[*side, *(["own"] if own_decoder is not None else [])],
                        static=static_bytes) if sc.output.record_messages else None
     if tape is not None:
         box.on_collect = tape.collected

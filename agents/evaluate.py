@@ -169,7 +169,10 @@ def _prepare(rec: Recording, recorded: int, overrides: list[str], out: Path, fra
         source = rec.folder / "scenario.yaml"
         copies = [f"{key}={rec.folder / 'files' / f['name']}" for key, f in files.items()
                   if (rec.folder / "files" / f["name"]).is_file()]
-    sc = load_scenario(source, [*h["scenario"]["overrides"], *copies, *overrides])
+    # the trust mode the run was recorded under (its messages carry its signatures; a recording from before
+    # issue 45 without the key ran with identity off, the default then), unless --set names another
+    recorded_auth = [f"comm.auth.identity={h['scenario']['resolved'].get('comm.auth.identity', 'off')}"]
+    sc = load_scenario(source, [*h["scenario"]["overrides"], *copies, *recorded_auth, *overrides])
     sc = dataclasses.replace(sc, output=dataclasses.replace(sc.output, record_messages=False))
     before, now = h["scenario"]["resolved"], resolved_keys(sc)
     defaults = resolved_keys(Scenario())  # a key added since the recording was made: it ran with the default
@@ -206,5 +209,5 @@ def _prepare(rec: Recording, recorded: int, overrides: list[str], out: Path, fra
 
     args = AgentArgs(scenario=sc, scenario_path=str(source), overrides=tuple(sc.overrides), run_id=h["run_id"],
                      listen="", peers=(), cavs=tuple(h["cavs"]), egos=(h["ego"],), cav=h["ego"], frames=n,
-                     out=str(out))
+                     out=str(out), run_instance=h.get("run_instance", ""))
     return args, n

@@ -57,6 +57,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=0)
     p.add_argument("--identity", default=None, help="comm.auth.identity per_process: the identity file the run "
                                                    "issued this agent (the run prints the path)")
+    p.add_argument("--run-instance", default="", help="comm.auth.key_file: the run instance the run printed")
     p.set_defaults(func=verbs.cmd_agent)
 
     p = sub.add_parser("router", help="a zenoh router for runs across hosts (transport.mode: client)")

@@ -38,7 +38,7 @@ from pathlib import Path
 from agents.args import agent_argv
 from agents.progress import ENV as PROGRESS_ENV
 from agents.progress import ProgressDisplay, parse_record
-from v2vsim.comm.identity import Identity, write_identity_file
+from v2vsim.comm.identity import Identity, new_run_instance, write_identity_file
 from v2vsim.comm.identity import issue as issue_identities
 from v2vsim.comm.transport import TransportError, free_ports, loopback_endpoint, open_session
 from v2vsim.config import ConfigError, Scenario, check_output_dir
@@ -143,6 +143,10 @@ def run(sc: Scenario, out: Path, frames: int | None = None, remote_cavs: tuple[s
     # comm.auth.identity per_process: the runner is the run's authority (v2vsim/comm/identity.py)
     identities = issue_identities(run_id, ["driver.main", *(f"cav.{c}" for c in cavs), *(f"ego.{e}" for e in egos)]
                                   ) if sc.comm.auth.identity == "per_process" else {}
+    instance = new_run_instance()  # comm.auth.key_file signs for this start of the run only
+    if sc.comm.auth.mode == "off":
+        print("v2vsim: warning: comm.auth.identity is off: nothing is signed, and any process on this host (or on "
+              "the zenoh bus) can alter this run's messages; report.md and metrics.json say so", file=sys.stderr)
     if remote_cavs:
         print("v2vsim: waiting for remote CAVs; on their hosts run:", file=sys.stderr)
         for c in remote_cavs:
@@ -151,9 +155,10 @@ def run(sc: Scenario, out: Path, frames: int | None = None, remote_cavs: tuple[s
                 path = out / "identity" / f"cav.{c}.json"
                 write_identity_file(path, identities[f"cav.{c}"])
                 ident = f"--identity {path} "
+            inst = f"--run-instance {instance} " if sc.comm.auth.key_file is not None else ""
             print(f"  v2vsim agent {sc.source} --cav {c} --run-id {run_id} --cavs {','.join(cavs)} "
-                  f"--egos {','.join(egos)} --frames {frames} {ident}" + " ".join(f"--set {o}" for o in overrides),
-                  file=sys.stderr)
+                  f"--egos {','.join(egos)} --frames {frames} {ident}{inst}"
+                  + " ".join(f"--set {o}" for o in overrides), file=sys.stderr)
     display = ProgressDisplay(frames, sc.rate_hz, [f"ego.{e}" for e in egos])
     children: list[Child] = []
     failures: list[str] = []  # why the run failed, as said on the terminal
@@ -166,7 +171,7 @@ def run(sc: Scenario, out: Path, frames: int | None = None, remote_cavs: tuple[s
             picked = {n for n, ep in endpoints.items() if ep and ep not in sc.transport.listen}
             children = []
             _start(children, sc, procs, endpoints, picked, overrides, run_id, cavs, egos, frames, out, display,
-                   identities)
+                   identities, instance)
             try:
                 code = _watch(children, display, failures)
                 break
@@ -203,7 +208,7 @@ def run(sc: Scenario, out: Path, frames: int | None = None, remote_cavs: tuple[s
 
 def _start(children: list[Child], sc: Scenario, procs: list[str], endpoints: dict[str, str], picked: set[str],
            overrides: list[str], run_id: str, cavs: list[str], egos: list[str], frames: int, out: Path,
-           display: ProgressDisplay, identities: dict[str, Identity]) -> None:
+           display: ProgressDisplay, identities: dict[str, Identity], instance: str) -> None:
     """Start every process (appending to `children` as it goes, so that Ctrl-C stops those already up),
     then one stderr reader per child (threads only after the forks: see `die_with_parent`). Under
     comm.auth.identity per_process each child reads its identity from its stdin pipe: not in its argv (ps
@@ -215,7 +220,8 @@ def _start(children: list[Child], sc: Scenario, procs: list[str], endpoints: dic
         module = {"driver": "agents.driver", "cav": "agents.cav", "ego": "agents.ego"}[role]
         argv = agent_argv(sc.source, overrides, run_id, endpoints[name],
                           [ep for n, ep in endpoints.items() if n != name and ep], cavs, egos, frames,
-                          cav="" if role == "driver" else ident, out=str(out), identity="-" if identities else "")
+                          cav="" if role == "driver" else ident, out=str(out), identity="-" if identities else "",
+                          run_instance=instance)
         # stdout joins stderr: nothing a child writes reaches the terminal except through the runner
         proc = subprocess.Popen([sys.executable, "-m", module, *argv], env=env,
                                 stdin=subprocess.PIPE if identities else subprocess.DEVNULL,

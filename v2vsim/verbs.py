@@ -79,6 +79,8 @@ def cmd_agent(args: argparse.Namespace) -> int:
             "--frames", str(args.frames)] + [x for o in args.overrides for x in ("--set", o)]
     if args.identity:
         argv += ["--identity", args.identity]
+    if args.run_instance:
+        argv += ["--run-instance", args.run_instance]
     return cav_main(argv)
 
 

@@ -22,6 +22,7 @@ from agents.bus import Bus
 from v2vsim.comm import transport as T
 from v2vsim.comm.codec import Message, decode, encode
 from v2vsim.comm.control import ControlPolicy, open_sealed, seal
+from v2vsim.comm.identity import shared_run_key
 from v2vsim.config import load_scenario
 
 from .conftest import Sessions, client_session
@@ -324,12 +325,12 @@ def test_hostile_messages_neither_crash_nor_end_a_run(tmp_path: Path, router: st
     done key cut the run short and it still exited 0."""
     key_file = tmp_path / "run.key"
     key_file.write_text("hostile run key\n")
-    key = b"hostile run key"
     out = tmp_path / "run"
     frames = 40  # (b) happens early, (a) near the end: room between them
     run = Run("--frames", str(frames), "--out", str(out), "--run-id", "hostile1", "--set", "cavs.count=2",
               "--methods", "none,late", "--set", "transport.mode=client", "--set", f"transport.connect=[{router}]",
               "--set", f"comm.auth.key_file={key_file}", "--set", "comm.range_m=1000", "--set", "output.rerun=false")
+    key = shared_run_key(b"hostile run key", "hostile1", run.instance())  # the key file's holder signs for this run
     with client_session(router) as session:
         outputs = T.Subscriber(session, "v2vsim/hostile1/outputs/cav1")
         acks = T.Subscriber(session, "v2vsim/hostile1/ack/*")

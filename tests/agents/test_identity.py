@@ -21,7 +21,7 @@ from v2vsim.comm import control
 from v2vsim.comm import transport as T
 from v2vsim.comm.codec import Message, RejectedMessage, check_arrival, decode, encode
 from v2vsim.comm.control import ControlPolicy, ReplayGuard, open_sealed, seal
-from v2vsim.comm.identity import IdentityError, issue, parse_identity, write_identity_file
+from v2vsim.comm.identity import IdentityError, issue, parse_identity, shared_run_key, write_identity_file
 
 from .conftest import Sessions, client_session
 from .test_hostile import _matched, _wait
@@ -219,7 +219,7 @@ def test_without_auth_a_fake_ego_token_no_longer_hangs_the_run(tmp_path: Path, r
         fake = session.liveliness().declare_token(f"v2vsim/{run_id}/alive/ego.cav0")
         run = Run("--frames", str(frames), "--out", str(out), "--run-id", run_id, "--methods", "none",
                   "--set", "cavs.count=2", "--set", "transport.mode=client", "--set",
-                  f"transport.connect=[{router}]", "--set", "output.rerun=false")
+                  f"transport.connect=[{router}]", "--set", "output.rerun=false", "--set", "comm.auth.identity=off")
         assert run.finish(timeout=240) == 0, "".join(run.log)
         fake.undeclare()
     m = _metrics(out)
@@ -233,12 +233,12 @@ def test_replays_and_near_future_copies_are_not_counted_as_fused_bytes(tmp_path:
     slot), counted apart, and bytes_per_frame stays at most one message per neighbour and frame."""
     key_file = tmp_path / "run.key"
     key_file.write_text("flood run key\n")
-    key = b"flood run key"
     run_id, frames = "replay1", 40
     out = tmp_path / "run"
     run = Run("--frames", str(frames), "--out", str(out), "--run-id", run_id, "--methods", "none,cobevt",
               "--set", "cavs.count=2", "--set", "transport.mode=client", "--set", f"transport.connect=[{router}]",
               "--set", f"comm.auth.key_file={key_file}", "--set", "comm.range_m=1000", "--set", "output.rerun=false")
+    key = shared_run_key(b"flood run key", run_id, run.instance())  # the key file's holder signs for this run
     genuine: dict[int, bytes] = {}
     with client_session(router) as session:
         sub = T.Subscriber(session, f"v2vsim/{run_id}/features/cav1")
@@ -266,3 +266,69 @@ def test_replays_and_near_future_copies_are_not_counted_as_fused_bytes(tmp_path:
     assert reasons.get("out_of_window", 0) + reasons.get("replayed", 0) >= 11, reasons  # the playback
     assert sum(reasons.get(r, 0) for r in ("out_of_window", "replayed", "duplicate")) >= 11 + 500 - 10, reasons
     assert m["methods"]["cobevt"]["bytes_per_frame"] <= size * 1.01, m["methods"]["cobevt"]  # one neighbour
+
+
+# ---- trust by default (issue 45) ----------------------------------------------------------------
+
+
+def _scores(m: dict) -> dict:
+    """What must not depend on the transport or on wall-clock timing: every method's scores, the frames."""
+    return {"frames": m["frames"], "methods": {name: {k: v for k, v in r.items() if k != "fusion_ms"}
+                                               for name, r in m["methods"].items()}}
+
+
+def test_a_default_run_shrugs_off_a_fake_ego_token(tmp_path: Path, router: str) -> None:
+    """Issue 45 case 1 on a run started with no trust flags: under the default per-process identities a zenoh
+    token proves nothing (presence is the signed hello), so the driver waits for the real ego. Every frame,
+    no CAV lost, the scores of a clean run of the same seed."""
+    run_id, frames = "faketoken2", 8
+    common = ["--frames", str(frames), "--run-id", run_id, "--methods", "none,cobevt", "--set", "cavs.count=2",
+              "--set", "comm.range_m=300", "--set", "output.rerun=false"]  # the run id's length is in the bytes
+    clean = Run(*common, "--out", str(tmp_path / "clean"))
+    assert clean.finish() == 0, "".join(clean.log)
+    with client_session(router) as session:
+        fake = session.liveliness().declare_token(f"v2vsim/{run_id}/alive/ego.cav0")
+        run = Run(*common, "--out", str(tmp_path / "run"), "--set", "transport.mode=client",
+                  "--set", f"transport.connect=[{router}]")
+        assert run.finish(timeout=240) == 0, "".join(run.log)
+        fake.undeclare()
+    m = _metrics(tmp_path / "run")
+    assert m["trust"] == "per_process" and m["status"] == "complete" and m["lost_agents"] == {}, m["status"]
+    assert _scores(m) == _scores(_metrics(tmp_path / "clean"))
+    assert "warning" not in "".join(run.log)
+
+
+def test_an_earlier_run_captured_under_the_same_key_and_run_id_is_refused(tmp_path: Path, router: str) -> None:
+    """Issue 45 case 4: under a shared key (comm.auth.key_file), everything an attacker captured from an earlier
+    run with the same key file and --run-id (features, outputs, acks, hellos, the driver's done) is played into a
+    new run from its start. Signatures are bound to the run instance, so all of it is refused as bad_signature:
+    the new run fuses only its own messages and scores what the earlier, clean run scored."""
+    key_file = tmp_path / "run.key"
+    key_file.write_text("shared run key\n")
+    run_id, frames = "crossrun1", 8
+    common = ["--frames", str(frames), "--run-id", run_id, "--methods", "none,late,cobevt", "--set", "cavs.count=2",
+              "--set", "comm.range_m=300", "--set", "output.rerun=false", "--set", "transport.mode=client",
+              "--set", f"transport.connect=[{router}]", "--set", f"comm.auth.key_file={key_file}"]
+    captured: list[tuple[str, bytes]] = []
+    with client_session(router) as session:
+        sub = T.Subscriber(session, f"v2vsim/{run_id}/**")
+        first = Run(*common, "--out", str(tmp_path / "first"))
+        assert first.finish() == 0, "".join(first.log)
+        while (got := sub.get(timeout=1)) is not None:
+            captured.append((got.key, got.data))
+        kinds = {key.split("/")[2] for key, _ in captured}
+        assert {"features", "outputs", "ack", "done", "hello"} <= kinds, kinds
+        second = Run(*common, "--out", str(tmp_path / "second"))
+        pubs: dict[str, T.Publisher] = {}
+        while second.proc.poll() is None:  # the whole capture, again and again, for as long as the run lasts
+            for key, data in captured:
+                if key not in pubs:
+                    pubs[key] = T.Publisher(session, key)
+                pubs[key].put(data)
+            time.sleep(0.05)
+        assert second.finish() == 0, "".join(second.log)
+    m = _metrics(tmp_path / "second")
+    assert m["trust"] == "shared_key" and m["status"] == "complete" and m["lost_agents"] == {}, m["status"]
+    assert m["comm"]["rejected_reasons"].get("bad_signature", 0) >= frames, m["comm"]["rejected_reasons"]
+    assert m["comm"]["by_kind"]["control"]["rejected_reasons"].get("bad_signature", 0) > 0
+    assert _scores(m) == _scores(_metrics(tmp_path / "first"))

@@ -93,6 +93,21 @@ class Run:
     def children(self) -> list[psutil.Process]:
         return psutil.Process(self.proc.pid).children(recursive=True)
 
+    def instance(self, timeout: float = 120) -> str:
+        """The run instance the runner gave its agents (their argv, as `ps` shows it to any local process): what
+        a holder of the comm.auth.key_file secret needs to sign for this run (v2vsim.comm.identity)."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            for c in self.children():
+                try:
+                    argv = c.cmdline()
+                except psutil.Error:
+                    continue
+                if "--run-instance" in argv:
+                    return argv[argv.index("--run-instance") + 1]
+            time.sleep(0.2)
+        raise AssertionError(f"no agent with --run-instance; stderr:\n{''.join(self.log)}")
+
 
 def _metrics(out: Path) -> dict:
     return json.loads((out / "metrics.json").read_text())

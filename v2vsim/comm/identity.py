@@ -21,8 +21,11 @@ agents/ego_mailbox.py).
 from __future__ import annotations
 
 import base64
+import hashlib
+import hmac
 import json
 import os
+import secrets
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -68,6 +71,20 @@ class Identity:
         return json.dumps({"format": FORMAT, "run_id": self.run_id, "name": self.name, "private_key": _b64(raw),
                            "trust": {n: _b64(p.public_bytes(Encoding.Raw, PublicFormat.Raw))
                                      for n, p in sorted(self.trust.items())}})
+
+
+def new_run_instance() -> str:
+    """A fresh, unguessable name for one start of a run (16 hex digits): what binds signatures under a shared
+    key to this run instance, whatever its run id."""
+    return secrets.token_hex(8)
+
+
+def shared_run_key(secret: bytes, run_id: str, instance: str) -> bytes:
+    """The key every process signs with under comm.auth.key_file: HMAC-SHA256 of the file's secret over the run
+    id and the run instance. A message captured from an earlier run with the same key file and --run-id was
+    signed under another instance's key, so it fails the signature check here (issue 45 case 4)."""
+    return hmac.new(secret, b"v2vsim-run-instance\0" + run_id.encode() + b"\0" + instance.encode(),
+                    hashlib.sha256).digest()
 
 
 def data_signer(sender_id: str) -> str:

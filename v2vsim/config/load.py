@@ -108,7 +108,7 @@ def load_scenario(path: str | Path, overrides: typing.Sequence[str] = ()) -> Sce
     sc = loader.section(Scenario, raw, "")
     sc = dataclasses.replace(sc, source=str(path), overrides=tuple(overrides))
     _check_cross_fields(sc, loader)
-    return sc
+    return resolve_auth(sc)
 
 
 def scenario_from_dict(raw: dict, base_dir: Path | None = None, source: str = "<dict>") -> Scenario:
@@ -116,4 +116,14 @@ def scenario_from_dict(raw: dict, base_dir: Path | None = None, source: str = "<
     loader = _Loader(source, base_dir)
     sc = dataclasses.replace(loader.section(Scenario, raw, ""), source=source)
     _check_cross_fields(sc, loader)
-    return sc
+    return resolve_auth(sc)
+
+
+def resolve_auth(sc: Scenario) -> Scenario:
+    """comm.auth.identity auto -> per_process, or off when comm.auth.key_file gives a shared key instead: every
+    process that loads the scenario resolves it alike, and metrics.json and recordings hold what ran."""
+    auth = sc.comm.auth
+    if auth.identity != "auto":
+        return sc
+    identity = "off" if auth.key_file is not None else "per_process"
+    return dataclasses.replace(sc, comm=dataclasses.replace(sc.comm, auth=dataclasses.replace(auth, identity=identity)))

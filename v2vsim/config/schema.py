@@ -141,13 +141,21 @@ class PoseNoiseConfig:
 
 @dataclass(frozen=True)
 class AuthConfig:
-    """Signed messages. key_file: one secret every process shares (hmac-sha256): proves membership of the
-    run, not who sent a message. identity per_process: each process signs with its own Ed25519 key, issued
-    by the runner for this run (v2vsim/comm/identity.py): a process can sign only as itself. One or the
-    other, not both."""
+    """Signed messages. key_file: one secret every process shares (hmac-sha256, bound to the run instance):
+    proves membership of the run, not who sent a message. identity per_process: each process signs with its
+    own Ed25519 key, issued by the runner for this run (v2vsim/comm/identity.py): a process can sign only as
+    itself. One or the other, not both. identity auto (the default) is per_process unless a key_file is given;
+    the loader resolves it, so a loaded Scenario holds off or per_process (issue 45: trust by default)."""
 
     key_file: str | None = _f(None, "path to a secret key file, relative to the YAML", path="file?")
-    identity: Literal["off", "per_process"] = "off"
+    identity: Literal["auto", "off", "per_process"] = "auto"
+
+    @property
+    def mode(self) -> Literal["per_process", "shared_key", "off"]:
+        """The trust mode that runs (metrics.json `trust.mode`): off means any local process can alter the run."""
+        if self.identity == "per_process":
+            return "per_process"
+        return "shared_key" if self.key_file is not None else "off"
 
 
 @dataclass(frozen=True)

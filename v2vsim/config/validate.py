@@ -44,6 +44,8 @@ class _Loader:
         if dataclasses.is_dataclass(tp):
             return self.section(tp, raw, key)
         if origin is Literal:
+            if isinstance(raw, bool) and ("on" if raw else "off") in typing.get_args(tp):
+                raw = "on" if raw else "off"  # YAML 1.1 reads a bare off/on (and no/yes) as a boolean
             if raw not in typing.get_args(tp):
                 hint = difflib.get_close_matches(str(raw), [str(a) for a in typing.get_args(tp)], 1)
                 extra = f" (did you mean {hint[0]!r}?)" if hint else ""

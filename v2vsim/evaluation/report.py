@@ -26,6 +26,16 @@ BASELINE = "none"  # no fusion: what every other method's difference is taken ag
 VS_NONE = {"iou_vehicle": "vehicle", "iou_road": "road", "iou_lane": "lane"}  # metrics.json key -> accumulator
 
 
+# report.md's line on comm.auth (docs/run.md, "Trust between processes")
+TRUST_LINES = {
+    "per_process": "Trust: every message signed by the process it names (comm.auth.identity per_process).",
+    "shared_key": "Trust: every message signed with the shared run key, bound to this run instance "
+                  "(comm.auth.key_file): a holder of the key file could have signed as any process.",
+    "off": "Trust: **off** (comm.auth.identity off): nothing was signed; any process on this host or on the zenoh "
+           "bus could have altered this run's messages.",
+}
+
+
 @dataclass
 class RunSummary:
     scenario: Scenario
@@ -77,6 +87,9 @@ def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: Comm
         "checkpoints": {m: summary.checkpoints.get(m) for m in summary.methods},
         "compensation": {m: summary.compensation.get(m, "none") for m in summary.methods},
         "clock": sc.transport.clock,
+        # comm.auth as it ran (docs/run.md "Trust between processes"): per_process, shared_key, or off (unsigned:
+        # any process on the host or the bus could have altered the run's messages)
+        "trust": sc.comm.auth.mode,
         # the models' forward passes on this host (v2vsim.perception.precision); remote CAVs resolve 'auto' on theirs
         "precision": {"asked": sc.perception.precision, "used": resolve_precision(sc.perception.precision)},
         "neighbours_in_range": neighbour_shares(summary.neighbours, sc.cavs.count),
@@ -133,6 +146,8 @@ def report_md(doc: dict, summary: RunSummary) -> str:
     lines.append(f"Status: **{doc['status']}**, {doc['frames']} frames at {sc.rate_hz:g} Hz, {sc.cavs.count} CAVs, "
                  f"ego {summary.ego}, {sc.perception.modality} / {sc.perception.encoder} ({sc.perception.preset}), "
                  f"clock {sc.transport.clock}, real-time factor {doc['real_time_factor']}.")
+    lines.append("")
+    lines.append(TRUST_LINES[sc.comm.auth.mode])
     lines.append("")
     lines.append(f"Scenario `{sc.source}`, seed {sc.seed}" + (
         ", overrides: " + " ".join(f"`--set {o}`" for o in sc.overrides) if sc.overrides else ", no overrides") + ".")

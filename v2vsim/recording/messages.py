@@ -2,7 +2,8 @@
 
 Format "v2vsim.messages" version 1, a folder `messages/` beside the ego's metrics.json:
 
-- header.json: {"format": "v2vsim.messages", "version": 1, "run_id", "ego", "cavs", "frames_requested",
+- header.json: {"format": "v2vsim.messages", "version": 1, "run_id", "run_instance" (what signatures under a shared
+  comm.auth.key_file are bound to; "" before issue 45), "ego", "cavs", "frames_requested",
   "frames" (frames recorded), "chunk_frames", "chunks" (file names, in frame order), "kinds" (the V2V kinds the ego
   collected: features, points, outputs), "side" (side kinds: vis, scan, own), "scenario": {"source", "overrides",
   "resolved" (every scenario key, dotted, as JSON values: what `evaluate` compares sender-side keys against)},
@@ -87,8 +88,8 @@ SCENARIO_FILES = ("traffic.net", "traffic.buildings")
 class MessageTape:
     """Writes a recording while the ego runs (lockstep: collect() is deterministic per frame)."""
 
-    def __init__(self, folder: Path, sc: Any, *, run_id: str, ego: str, cavs: list[str], frames: int,
-                 kinds: list[str], side: list[str], static: bytes) -> None:
+    def __init__(self, folder: Path, sc: Any, *, run_id: str, run_instance: str, ego: str, cavs: list[str],
+                 frames: int, kinds: list[str], side: list[str], static: bytes) -> None:
         self.folder = folder
         folder.mkdir(parents=True, exist_ok=True)
         for old in folder.glob("chunk_*.bin"):
@@ -110,7 +111,8 @@ class MessageTape:
                 except OSError:
                     pass
         self.header: dict[str, Any] = {
-            "format": FORMAT, "version": VERSION, "run_id": run_id, "ego": ego, "cavs": list(cavs),
+            "format": FORMAT, "version": VERSION, "run_id": run_id, "run_instance": run_instance, "ego": ego,
+            "cavs": list(cavs),
             "frames_requested": frames, "frames": 0, "chunk_frames": CHUNK_FRAMES, "chunks": [],
             "kinds": list(kinds), "side": list(side),
             "scenario": {"source": sc.source, "overrides": list(sc.overrides), "resolved": resolved,

@@ -198,3 +198,20 @@ def test_the_fusion_deadline_defaults_to_half_a_frame(tmp_path: Path) -> None:
     assert fast.fusion_deadline_s == pytest.approx(0.0005)
     assert load_scenario(_write(tmp_path, "traffic: {backend: highway-env}\n"), ["comm.fusion_deadline_ms=0"]
                          ).fusion_deadline_s == 0.0
+
+
+def test_trust_is_on_by_default_and_off_is_spelled_plainly(tmp_path: Path) -> None:
+    """Issue 45: per-process identities unless the scenario says otherwise; a shared key_file resolves `auto` to
+    the shared key; a bare YAML `off` (a boolean to YAML 1.1) is the mode `off`, in the file and in --set."""
+    base = "traffic: {backend: highway-env}\n"
+    sc = load_scenario(_write(tmp_path, base))
+    assert sc.comm.auth.identity == "per_process" and sc.comm.auth.mode == "per_process"
+    assert load_scenario(_write(tmp_path, base + "comm: {auth: {identity: off}}\n")).comm.auth.mode == "off"
+    assert load_scenario(_write(tmp_path, base), ["comm.auth.identity=off"]).comm.auth.mode == "off"
+    (tmp_path / "v2v.key").write_text("a secret\n")
+    sc = load_scenario(_write(tmp_path, base + "comm: {auth: {key_file: v2v.key}}\n"))
+    assert sc.comm.auth.identity == "off" and sc.comm.auth.mode == "shared_key"
+    with pytest.raises(ConfigError, match="two ways to sign"):
+        load_scenario(_write(tmp_path, base + "comm: {auth: {key_file: v2v.key, identity: per_process}}\n"))
+    with pytest.raises(ConfigError, match=r"comm\.auth\.identity: got 'of'.*did you mean 'off'"):
+        load_scenario(_write(tmp_path, base), ["comm.auth.identity=of"])

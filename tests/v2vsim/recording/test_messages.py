@@ -17,7 +17,7 @@ from v2vsim.recording.messages import MessageTape, Recording, resolved_keys
 
 def _tape(folder: Path, frames: int) -> list[tuple[int, dict, Counter]]:
     sc = load_scenario("intersection", ["cavs.count=2"])
-    tape = MessageTape(folder, sc, run_id="r1", ego="cav0", cavs=["cav0", "cav1"], frames=frames,
+    tape = MessageTape(folder, sc, run_id="r1", run_instance="i1", ego="cav0", cavs=["cav0", "cav1"], frames=frames,
                        kinds=["features", "outputs"], side=["vis"], static=b"static-map")
     written = []
     for k in range(frames):
@@ -72,7 +72,8 @@ def test_a_killed_run_leaves_a_header_and_its_whole_frames(tmp_path: Path, monke
     monkeypatch.setattr(messages, "CHUNK_FRAMES", 4)
     sc = load_scenario("intersection", ["cavs.count=2"])
     folder = tmp_path / "messages"
-    tape = MessageTape(folder, sc, run_id="r1", ego="cav0", cavs=["cav0", "cav1"], frames=20, kinds=["features"],
+    tape = MessageTape(folder, sc, run_id="r1", run_instance="i1", ego="cav0", cavs=["cav0", "cav1"], frames=20,
+                       kinds=["features"],
                        side=[], static=b"static-map")
     assert json.loads((folder / "header.json").read_text())["status"] == "running"  # written at the start
     for k in range(7):
