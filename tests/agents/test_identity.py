@@ -202,7 +202,7 @@ def test_identities_stop_impersonation_and_dangling_tokens(tmp_path: Path, route
             agent.kill()
             agent.wait()
     m = _metrics(out)
-    assert m["frames"] == frames and m["status"] == "complete", m["status"]
+    assert m["frames"] == frames and m["status"] == f"degraded: cav1 lost from frame {m['lost_agents']['cav1']}", m
     assert set(m["lost_agents"]) == {"cav1"}
     print(f"cav1's death noticed {noticed:.1f} s after SIGKILL")
     assert noticed < agent_bus.SILENCE_S + 5, noticed  # the ego's hang timeout was 60 s
