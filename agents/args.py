@@ -29,14 +29,17 @@ def run_signer(args: AgentArgs) -> Signer | None:
 def load_identity(spec: str, sc: Scenario, run_id: str, name: str) -> Identity:
     """The Identity the runner issued this process: '-' = on stdin (a local child), else an identity file
     (an agent on another host, docs/cluster.md). IdentityError says what is wrong."""
-    if spec == "-":
-        text, where = sys.stdin.read(), "the identity on stdin"
-    else:
-        try:
-            text, where = Path(spec).read_text(), spec
-        except OSError as e:
-            raise IdentityError(f"--identity {spec}: cannot read it: {e.strerror or e}") from None
-    return parse_identity(text, where, run_id=run_id, name=name)
+    where = "the identity on stdin" if spec == "-" else f"--identity {spec}"
+    try:
+        raw = sys.stdin.buffer.read() if spec == "-" else Path(spec).read_bytes()
+    except OSError as e:
+        raise IdentityError(f"{where}: cannot read it: {e.strerror or e}") from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError:  # was a traceback: not the JSON file the runner wrote
+        raise IdentityError(f"{where}: not an identity file (not UTF-8 text; the runner writes JSON, "
+                            "docs/cluster.md)") from None
+    return parse_identity(text, "the identity on stdin" if spec == "-" else spec, run_id=run_id, name=name)
 
 
 @dataclass(frozen=True)
@@ -87,6 +90,11 @@ def parse_agent_args(role: str, argv: list[str] | None = None) -> AgentArgs:
         except IdentityError as e:
             print(f"v2vsim-{role}: error: {e}", file=sys.stderr)
             sys.exit(2)
+    elif a.identity is not None:  # was ignored, and the agent then waited without a word for a run it cannot join
+        print(f"v2vsim-{role}: error: --identity {a.identity}: this scenario's comm.auth.identity is "
+              f"{sc.comm.auth.identity}, so an identity file is not used; give the same --set options as the run "
+              "(its printed agent command line has them, e.g. --set comm.auth.identity=per_process)", file=sys.stderr)
+        sys.exit(2)
     split = lambda s: tuple(x for x in s.split(",") if x)  # noqa: E731
     return AgentArgs(scenario=sc, scenario_path=a.scenario, overrides=tuple(a.overrides), run_id=a.run_id,
                      listen=a.listen, peers=tuple(a.peers), cavs=split(a.cavs), egos=split(a.egos), cav=a.cav,

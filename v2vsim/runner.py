@@ -42,7 +42,7 @@ from v2vsim.comm.identity import Identity, write_identity_file
 from v2vsim.comm.identity import issue as issue_identities
 from v2vsim.comm.transport import TransportError, free_ports, loopback_endpoint, open_session
 from v2vsim.config import ConfigError, Scenario, check_output_dir
-from v2vsim.evaluation.status import terminal_line
+from v2vsim.evaluation.status import cav_ranges, terminal_line
 from v2vsim.perception.build import check_scenario, method_checkpoints, runnable_methods, zoo_for
 from v2vsim.sensors.sensing import ego_ids
 from v2vsim.traffic.base import cav_id
@@ -109,14 +109,18 @@ def plan_endpoints(sc: Scenario, names: list[str]) -> dict[str, str]:
 
 def run(sc: Scenario, out: Path, frames: int | None = None, remote_cavs: tuple[str, ...] = (),
         run_id: str | None = None) -> int:
-    """Run the co-simulation; the exit code for `v2vsim run` (ConfigError for a bad --frames or --out;
-    0 for a degraded run too: its files are written and its status says what happened)."""
+    """Run the co-simulation; the exit code for `v2vsim run` (ConfigError for a bad --frames, --out or
+    --remote-cavs; 0 for a degraded run too: its files are written and its status says what happened)."""
     if frames is not None and frames < 1:
         raise ConfigError(f"--frames {frames}: expected a number of frames >= 1")
     frames = frames or sc.frames
     run_id = run_id or uuid.uuid4().hex[:8]
     cavs = [cav_id(i) for i in range(sc.cavs.count)]
     egos = ego_ids(sc, cavs)
+    unknown = [c for c in remote_cavs if c not in cavs]
+    if unknown:  # it would print an agent command that cannot join and run every CAV here
+        raise ConfigError(f"--remote-cavs {','.join(remote_cavs)}: {', '.join(unknown)}: not a CAV of this run "
+                          f"(cavs.count {sc.cavs.count}: {cav_ranges(cavs)})")
     check_scenario(sc)
     check_output_dir(out, "--out")
     try:
