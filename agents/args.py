@@ -35,14 +35,17 @@ def run_signer(args: AgentArgs) -> Signer | None:
 def load_identity(spec: str, sc: Scenario, run_id: str, name: str) -> Identity:
     """The Identity the runner issued this process: '-' = on stdin (a local child), else an identity file
     (an agent on another host, docs/cluster.md). IdentityError says what is wrong."""
-    if spec == "-":
-        text, where = sys.stdin.read(), "the identity on stdin"
-    else:
-        try:
-            text, where = Path(spec).read_text(), spec
-        except OSError as e:
-            raise IdentityError(f"--identity {spec}: cannot read it: {e.strerror or e}") from None
-    return parse_identity(text, where, run_id=run_id, name=name)
+    where = "the identity on stdin" if spec == "-" else f"--identity {spec}"
+    try:
+        raw = sys.stdin.buffer.read() if spec == "-" else Path(spec).read_bytes()
+    except OSError as e:
+        raise IdentityError(f"{where}: cannot read it: {e.strerror or e}") from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError:  # was a traceback: not the JSON file the runner wrote
+        raise IdentityError(f"{where}: not an identity file (not UTF-8 text; the runner writes JSON, "
+                            "docs/cluster.md)") from None
+    return parse_identity(text, "the identity on stdin" if spec == "-" else spec, run_id=run_id, name=name)
 
 
 @dataclass(frozen=True)
@@ -95,6 +98,11 @@ def parse_agent_args(role: str, argv: list[str] | None = None) -> AgentArgs:
         except IdentityError as e:
             print(f"v2vsim-{role}: error: {e}", file=sys.stderr)
             sys.exit(2)
+    elif a.identity is not None:  # was ignored, and the agent then waited without a word for a run it cannot join
+        print(f"v2vsim-{role}: error: --identity {a.identity}: this scenario's comm.auth.identity is "
+              f"{sc.comm.auth.identity}, so an identity file is not used; give the same --set options as the run "
+              "(its printed agent command line has them, e.g. --set comm.auth.identity=per_process)", file=sys.stderr)
+        sys.exit(2)
     if sc.comm.auth.key_file is not None and not a.run_instance:
         print(f"v2vsim-{role}: error: comm.auth.key_file signs for one run instance and no --run-instance was "
               "given (the runner prints each remote agent's command line with it)", file=sys.stderr)

@@ -9,9 +9,10 @@ realtime: frame k is fused when its world arrives, with whatever has arrived by 
 
 Every received V2V message goes through one decode path (v2vsim.comm.wire_spec.EgoDecoder, with
 the scenario's exact shapes and bounds); a rejected one is counted, never fatal. metrics.json
-`status` says how the run ended: complete, ended early (the driver finished or stopped), driver
-died (its liveliness token dropped without a bye: the ego stops within seconds), interrupted,
-or crashed at frame k (the exception is re-raised, exit 1).
+`status` says how the run ended: complete, degraded (every frame, but CAVs lost or a method with no score:
+v2vsim.evaluation.status, exit 0), ended early (the driver finished or stopped), driver died (its liveliness
+token dropped without a bye: the ego stops within seconds), interrupted, or crashed at frame k (the exception
+is re-raised, exit 1).
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ from v2vsim.evaluation.fuse_and_score import box_iou, predict_all
 from v2vsim.evaluation.gt import bev_ground_truth, gt_boxes
 from v2vsim.evaluation.metrics import ApAccumulator, MethodScore, cavs_in_range
 from v2vsim.evaluation.report import RunSummary, write_outputs
+from v2vsim.evaluation.status import final_status, unscored
 from v2vsim.perception.build import (
     build_agent_encoder,
     build_compressor,
@@ -260,6 +262,10 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None) -> int:
                 status = _crashed(f"after frame {k}", e)
                 late_error, code = e, 1
             reject_leftovers(box, kinds, inboxes, decoder)
+            # a run through every frame that lost agents or scored nothing for a method says so (a replay too:
+            # its lost agents are the recording's, from the same frames)
+            ious = {m: (s.vehicle.iou, s.vehicle_all.iou, s.road.iou, s.lane.iou) for m, s in scores.items()}
+            status = final_status(status, lost, unscored(ious))
             summary.timing = timer.to_json()
             summary.frames = frames_done
             summary.sim_s = (k + 1) / sc.rate_hz

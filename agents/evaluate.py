@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from v2vsim.config import ConfigError, Scenario, check_output_dir, load_scenario
+from v2vsim.evaluation.status import COMPLETE
 from v2vsim.recording.messages import receiver_side
 
 if TYPE_CHECKING:
@@ -89,9 +90,25 @@ def evaluate_points(recording: Path, points: Sequence[tuple[Sequence[str], Path]
 
         args, n = plans[0]
         bus = ReplayBus(rec, n)
-        return ego_loop(args, bus, replay=bus)  # type: ignore[arg-type]
-    labels = [f"ego.{args.cav} [{', '.join(o) or out.name}]" for (args, _), (o, out) in zip(plans, points, strict=True)]
-    return _replay_together(rec, [a for a, _ in plans], plans[0][1], labels)
+        code = ego_loop(args, bus, replay=bus)  # type: ignore[arg-type]
+    else:
+        labels = [f"ego.{args.cav} [{', '.join(o) or out.name}]"
+                  for (args, _), (o, out) in zip(plans, points, strict=True)]
+        code = _replay_together(rec, [a for a, _ in plans], plans[0][1], labels)
+    _say_statuses([out for _, out in points])
+    return code
+
+
+def _say_statuses(outs: Sequence[Path]) -> None:
+    """A replayed point that is not complete says so on the terminal, as `v2vsim run` does (a replay of a
+    degraded run is degraded the same way: its lost agents are the recording's)."""
+    for out in outs:
+        try:
+            status = json.loads((out / "metrics.json").read_text()).get("status")
+        except (OSError, ValueError, AttributeError):
+            continue  # a point that wrote nothing: its error was said already
+        if status != COMPLETE:
+            print(f"v2vsim evaluate: {out}: not complete: {status}", file=sys.stderr)
 
 
 def _replay_together(rec: Recording, runs: list[AgentArgs], frames: int, labels: list[str]) -> int:

@@ -151,6 +151,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-replay", dest="replay", action="store_false",
                    help="simulate every run (default: record the first point of each seed and replay the points "
                    "that differ from it only in receiver-side keys with `v2vsim evaluate`)")
+    p.add_argument("--include-degraded", action="store_true",
+                   help="count degraded runs (agents lost, a method with no score) in the intervals, tables and "
+                   "plots; by default they are only in sweep.csv/json, with their status")
     p.add_argument("--out", required=True, help="sweep directory (resumable: complete runs there are reused)")
     p.set_defaults(func=verbs.cmd_sweep)
 

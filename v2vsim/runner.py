@@ -42,6 +42,7 @@ from v2vsim.comm.identity import Identity, new_run_instance, write_identity_file
 from v2vsim.comm.identity import issue as issue_identities
 from v2vsim.comm.transport import TransportError, free_ports, loopback_endpoint, open_session
 from v2vsim.config import ConfigError, Scenario, check_output_dir
+from v2vsim.evaluation.status import cav_ranges, terminal_line
 from v2vsim.perception.build import check_scenario, method_checkpoints, runnable_methods, zoo_for
 from v2vsim.sensors.sensing import ego_ids
 from v2vsim.traffic.base import cav_id
@@ -108,13 +109,18 @@ def plan_endpoints(sc: Scenario, names: list[str]) -> dict[str, str]:
 
 def run(sc: Scenario, out: Path, frames: int | None = None, remote_cavs: tuple[str, ...] = (),
         run_id: str | None = None) -> int:
-    """Run the co-simulation; the exit code for `v2vsim run` (ConfigError for a bad --frames / --out)."""
+    """Run the co-simulation; the exit code for `v2vsim run` (ConfigError for a bad --frames, --out or
+    --remote-cavs; 0 for a degraded run too: its files are written and its status says what happened)."""
     if frames is not None and frames < 1:
         raise ConfigError(f"--frames {frames}: expected a number of frames >= 1")
     frames = frames or sc.frames
     run_id = run_id or uuid.uuid4().hex[:8]
     cavs = [cav_id(i) for i in range(sc.cavs.count)]
     egos = ego_ids(sc, cavs)
+    unknown = [c for c in remote_cavs if c not in cavs]
+    if unknown:  # it would print an agent command that cannot join and run every CAV here
+        raise ConfigError(f"--remote-cavs {','.join(remote_cavs)}: {', '.join(unknown)}: not a CAV of this run "
+                          f"(cavs.count {sc.cavs.count}: {cav_ranges(cavs)})")
     check_scenario(sc)
     check_output_dir(out, "--out")
     try:
@@ -198,8 +204,8 @@ def run(sc: Scenario, out: Path, frames: int | None = None, remote_cavs: tuple[s
         _write_failure_metrics(out, sc, egos, failures)
     if not interrupted and code == 0:
         report = out / "report.md"
-        if report.is_file():
-            print(f"v2vsim: done: {report}", file=sys.stderr)
+        if report.is_file():  # the last line says what metrics.json says: complete, or what happened instead
+            print(terminal_line(_statuses(out, egos), str(report)), file=sys.stderr)
         else:
             print(f"v2vsim: error: the run ended but no report was written to {out}", file=sys.stderr)
             code = 1
@@ -300,6 +306,18 @@ def _write_failure_metrics(out: Path, sc: Scenario, egos: list[str], failures: l
             "cavs": sc.cavs.count, "modality": sc.perception.modality, "real_time_factor": None, "comm": {},
             "methods": {}, "ego": e, "status": f"failed: {why} (no results; written by the runner)",
             "encoder": sc.perception.encoder, "preset": sc.perception.preset}, indent=2))
+
+
+def _statuses(out: Path, egos: list[str]) -> dict[str, str]:
+    """Each ego's metrics.json status (v2vsim.evaluation.status), for the runner's last line."""
+    got = {}
+    for e in egos:
+        try:
+            got[e] = str(json.loads((out / ("" if e == egos[0] else f"ego_{e}") / "metrics.json").read_text())
+                         .get("status", "no status in metrics.json"))
+        except (OSError, ValueError, AttributeError):
+            got[e] = "no readable metrics.json"
+    return got
 
 
 def _describe(name: str, rc: int) -> str:

@@ -219,7 +219,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
                            frames=args.frames, jobs=args.jobs, overrides=tuple(args.overrides),
                            methods=_method_names(args.methods),
                            bootstrap=args.bootstrap, engine=args.engine, scheduler=args.scheduler,
-                           replay=args.replay))
+                           replay=args.replay, include_degraded=args.include_degraded))
 
 
 def cmd_bandwidth(args: argparse.Namespace) -> int:

@@ -202,7 +202,7 @@ def test_identities_stop_impersonation_and_dangling_tokens(tmp_path: Path, route
             agent.kill()
             agent.wait()
     m = _metrics(out)
-    assert m["frames"] == frames and m["status"] == "complete", m["status"]
+    assert m["frames"] == frames and m["status"] == f"degraded: cav1 lost from frame {m['lost_agents']['cav1']}", m
     assert set(m["lost_agents"]) == {"cav1"}
     print(f"cav1's death noticed {noticed:.1f} s after SIGKILL")
     assert noticed < agent_bus.SILENCE_S + 5, noticed  # the ego's hang timeout was 60 s
@@ -223,7 +223,10 @@ def test_without_auth_a_fake_ego_token_no_longer_hangs_the_run(tmp_path: Path, r
         assert run.finish(timeout=240) == 0, "".join(run.log)
         fake.undeclare()
     m = _metrics(out)
-    assert m["frames"] == frames and m["status"] == "complete", m["status"]
+    # unsigned, the token still costs the CAVs' first messages: they are lost after the ego's 60 s wait, and the
+    # run says so (issue 45) instead of "complete"; the default, signed run shrugs it off (below)
+    assert m["frames"] == frames and m["status"].startswith("degraded: "), m["status"]
+    assert m["trust"] == "off"
 
 
 def test_replays_and_near_future_copies_are_not_counted_as_fused_bytes(tmp_path: Path, router: str) -> None:

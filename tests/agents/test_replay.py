@@ -172,12 +172,20 @@ def test_a_cav_killed_mid_run_is_lost_at_the_same_frame_in_the_replay(tmp_path: 
     victims = [p for p in run.children() if "agents.cav" in " ".join(p.cmdline()) and "cav2" in p.cmdline()]
     assert len(victims) == 1
     victims[0].send_signal(signal.SIGKILL)
-    assert run.finish() == 0, "".join(run.log)
+    assert run.finish() == 0, "".join(run.log)  # degraded, not failed: every file is written
     live = json.loads((out / "metrics.json").read_text())
-    assert "cav2" in live["lost_agents"] and live["status"] == "complete"
+    # issue 45: it said "complete"; a run that lost an agent is degraded, and says from which frame
+    assert list(live["lost_agents"]) == ["cav2"]
+    assert live["status"] == f"degraded: cav2 lost from frame {live['lost_agents']['cav2']}", live["status"]
+    assert run.log[-1].startswith(f"v2vsim: done, not complete: {live['status']}; report: ")
     assert live["frames"] == 30 and 10 <= live["lost_agents"]["cav2"] < 30
     assert "cav2" in live["comm"]["lost_agents"]
     assert live["methods"]["cobevt"]["frames"] == 30
-    assert Recording(out).header["lost_agents"] == live["lost_agents"]
-    replay = _replay(out, tmp_path / "replay")
-    assert _scores(replay) == _scores(live)
+    recording = Recording(out)
+    assert recording.header["lost_agents"] == live["lost_agents"] and recording.header["status"] == live["status"]
+    assert recording.complete  # every frame recorded: replayed whole, not as a killed run's
+    r = _cli("evaluate", str(out), "--out", str(tmp_path / "replay"))
+    assert r.returncode == 0 and "never finished" not in r.stderr, r.stderr[-3000:]
+    assert f"not complete: {live['status']}" in r.stderr, r.stderr[-3000:]
+    replay = json.loads((tmp_path / "replay" / "metrics.json").read_text())
+    assert _scores(replay) == _scores(live)  # the same status and lost agents, bit for bit

@@ -124,8 +124,14 @@ def test_done_is_said_only_when_the_report_exists(tmp_path: Path, monkeypatch: p
     err = capsys.readouterr().err
     assert "v2vsim: done" not in err and f"no report was written to {tmp_path}" in err
     (tmp_path / "report.md").write_text("# report\n")
+    (tmp_path / "metrics.json").write_text('{"status": "complete"}')
     assert runner.run(sc, tmp_path, frames=2) == 0
     assert f"v2vsim: done: {tmp_path / 'report.md'}" in capsys.readouterr().err
+    # issue 45: the last line says what metrics.json says (a degraded run still exits 0: its files are there)
+    (tmp_path / "metrics.json").write_text('{"status": "degraded: cav1 lost from frame 1"}')
+    assert runner.run(sc, tmp_path, frames=2) == 0
+    assert ("v2vsim: done, not complete: degraded: cav1 lost from frame 1; report: "
+            f"{tmp_path / 'report.md'}") in capsys.readouterr().err
 
 
 # ---- the driver stops when every ego is gone ---------------------------------------------------

@@ -15,6 +15,7 @@ from v2vsim.comm.wire_spec import message_kind
 from v2vsim.config import ChannelConfig, Scenario
 from v2vsim.evaluation.block_bootstrap import LEVEL, REPLICATES, paired_difference
 from v2vsim.evaluation.metrics import MethodScore, neighbour_shares, paired_counts
+from v2vsim.evaluation.status import explain
 from v2vsim.perception.precision import resolve as resolve_precision
 
 # CoBEVT paper figures (DESIGN.md "Reference figures"): OPV2V camera IoU vehicle/road/lane, LiDAR AP@0.7.
@@ -146,9 +147,8 @@ def report_md(doc: dict, summary: RunSummary) -> str:
     lines.append(f"Status: **{doc['status']}**, {doc['frames']} frames at {sc.rate_hz:g} Hz, {sc.cavs.count} CAVs, "
                  f"ego {summary.ego}, {sc.perception.modality} / {sc.perception.encoder} ({sc.perception.preset}), "
                  f"clock {sc.transport.clock}, real-time factor {doc['real_time_factor']}.")
-    lines.append("")
-    lines.append(TRUST_LINES[sc.comm.auth.mode])
-    lines.append("")
+    lines += ["", f"**{why}**", ""] if (why := explain(doc["status"])) else [""]
+    lines += [TRUST_LINES[sc.comm.auth.mode], ""]
     lines.append(f"Scenario `{sc.source}`, seed {sc.seed}" + (
         ", overrides: " + " ".join(f"`--set {o}`" for o in sc.overrides) if sc.overrides else ", no overrides") + ".")
     if summary.grid_cells:

@@ -9,7 +9,8 @@ Format "v2vsim.messages" version 1, a folder `messages/` beside the ego's metric
   "resolved" (every scenario key, dotted, as JSON values: what `evaluate` compares sender-side keys against)},
   "lost_agents", "control_rejections" ([[kind, reason, n]]), "status"}. Written when recording starts and
   again at every new chunk (status "running"), then when the run ends; a run killed mid-way (SIGKILL, power)
-  leaves status "running" and its chunks up to the last whole frame, which `evaluate` replays, saying so.
+  leaves status "running" and its chunks up to the last whole frame, which `evaluate` replays, saying so. A
+  degraded run (agents lost: v2vsim.evaluation.status) went through every frame: its recording is whole.
 - scenario.yaml: the scenario file the run read (a copy; evaluate reads it where the original is gone).
 - files/: copies of the files the scenario names (traffic.net, traffic.buildings: SCENARIO_FILES), listed with
   their sha256 in the header's "scenario" "files" {key: {"name", "sha256"}} (recordings from before lack both).
@@ -40,6 +41,7 @@ from pathlib import Path
 from typing import Any
 
 from models.zoo import sha256  # the zoo's chunked file digest
+from v2vsim.evaluation.status import finished
 
 FORMAT = "v2vsim.messages"
 VERSION = 1
@@ -228,7 +230,9 @@ class Recording:
 
     @property
     def complete(self) -> bool:
-        return self.header.get("status") == "complete"
+        """Whether the recorded run went through every frame: complete, or degraded (agents lost, which its
+        replay loses again from the same frames), so its header lists every chunk."""
+        return finished(self.header.get("status"))
 
     def frames(self) -> Iterator[tuple[int, RecordedFrame]]:
         """Every recorded frame in order. A run that never ended (status "running": killed) yields its frames up

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from v2vsim.evaluation.status import COMPLETE
 from v2vsim.study.grid import Point
 from v2vsim.study.runs import RunResult, read_metrics
 
@@ -33,6 +34,7 @@ class Row:
     metrics: dict[str, Any]
     run_dir: Path
     per_frame: dict[int, float] | None = None  # frame index -> this method's visible-vehicle IoU
+    status: str = COMPLETE  # the run's metrics.json status: complete, or degraded: ... (sweep.csv's last column)
 
 
 def per_frame_vehicle_iou(rrd: Path) -> dict[str, dict[int, float]]:
@@ -57,7 +59,8 @@ def per_frame_vehicle_iou(rrd: Path) -> dict[str, dict[int, float]]:
 
 
 def collect(results: Sequence[RunResult]) -> list[Row]:
-    """Rows of every successful run, in plan order (point, seed), methods in the run's order."""
+    """Rows of every run that went through its frames (complete or degraded), in plan order (point, seed),
+    methods in the run's order."""
     rows = []
     for r in results:
         if not r.ok:
@@ -68,6 +71,7 @@ def collect(results: Sequence[RunResult]) -> list[Row]:
         rrd = r.spec.out / "recording.rrd"
         methods = doc.get("methods") or {}
         logged = None
+        status = str(doc.get("status", r.status))
         for method, metrics in methods.items():
             metrics = dict(metrics)
             counts = metrics.pop(COUNTS_KEY, None)
@@ -80,8 +84,14 @@ def collect(results: Sequence[RunResult]) -> list[Row]:
             else:
                 logged = logged if logged is not None else per_frame_vehicle_iou(rrd) if rrd.is_file() else {}
                 per_frame = logged.get(method)
-            rows.append(Row(r.spec.point, r.spec.seed, method, metrics, r.spec.out, per_frame))
+            rows.append(Row(r.spec.point, r.spec.seed, method, metrics, r.spec.out, per_frame, status))
     return rows
+
+
+def counted(rows: Sequence[Row], include_degraded: bool = False) -> list[Row]:
+    """The rows a study's statistics take: complete runs only, unless `include_degraded` (a degraded run's scores
+    are not those of the configured run: its lost agents sent nothing from a frame on)."""
+    return [r for r in rows if include_degraded or r.status == COMPLETE]
 
 
 def metric_columns(rows: Sequence[Row]) -> list[str]:

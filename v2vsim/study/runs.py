@@ -3,7 +3,9 @@ point) as a child process, up to `jobs` at a time, resumable, with one progress 
 stops the children cleanly.
 
 A run counts as done when its metrics.json says status "complete" and its `sweep_run.json` (what the
-sweep asked for: the run's request, v2vsim.study.plan) matches the current request; anything else is (re)run.
+sweep asked for: the run's request, v2vsim.study.plan) matches the current request; anything else is (re)run,
+a degraded run too (agents lost: v2vsim.evaluation.status), so that a resumed sweep gives it another chance. A
+degraded run that has just finished is not a failure: its rows are kept with their status (v2vsim.study.rows).
 A run's own output (its progress lines, errors) goes to `sweep-run.log` in its directory.
 """
 
@@ -22,6 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol, TextIO
 
+from v2vsim.evaluation.status import COMPLETE, finished
 from v2vsim.runner import die_with_parent
 from v2vsim.study.plan import RunSpec, same_config
 
@@ -41,6 +44,7 @@ class RunResult:
     wall_s: float = 0.0
     why: str = ""  # for a failed run: exit code / status
     tail: tuple[str, ...] = ()  # for a failed run: its last output lines
+    status: str = COMPLETE  # metrics.json's, for a run that went through every frame: complete or degraded: ...
 
 
 class Job(Protocol):
@@ -73,7 +77,7 @@ def is_done(spec: RunSpec) -> bool:
     """Complete metrics.json from the same request (a run from before the sweep wrote requests counts); a
     recording run also needs its complete recording."""
     doc = read_metrics(spec.out)
-    if doc is None or doc.get("status") != "complete":
+    if doc is None or doc.get("status") != COMPLETE:
         return False
     if spec.records and not recording_complete(spec.out):
         return False
@@ -141,8 +145,8 @@ def _finish(spec: RunSpec, code: int, wall_s: float, log: Path | None = None) ->
     """The result of a finished run; `log`: where its output went (replays started together: the first's)."""
     doc = read_metrics(spec.out)
     status = None if doc is None else doc.get("status")
-    if status == "complete" and (code == 0 or log is not None):  # together: another point's failure is not its
-        return RunResult(spec, True, code=code, wall_s=wall_s)
+    if finished(status) and (code == 0 or log is not None):  # together: another point's failure is not its
+        return RunResult(spec, True, code=code, wall_s=wall_s, status=str(status))
     why = f"exit code {code}" + (f", status {status!r}" if status else ", no metrics.json")
     return RunResult(spec, False, code=code, wall_s=wall_s, why=why, tail=_tail(log or spec.out / LOG))
 
@@ -167,6 +171,7 @@ class Progress:
     done: int = 0
     reused: int = 0
     failed: int = 0
+    degraded: int = 0
     walls: tuple[float, ...] = ()
 
     def line(self, running: int, now: float) -> str:
@@ -179,6 +184,7 @@ class Progress:
             eta = "0 s"
         extra = [f"{self.reused} reused"] if self.reused else []
         extra += [f"{self.failed} failed"] if self.failed else []
+        extra += [f"{self.degraded} degraded"] if self.degraded else []
         return (f"v2vsim sweep: {self.done}/{self.total} runs" + (f" ({', '.join(extra)})" if extra else "")
                 + f", {running} running, elapsed {_duration(now - self.t0)}, ETA {eta}")
 
@@ -275,6 +281,10 @@ def execute(specs: Sequence[RunSpec], jobs: int, start: Callable[[RunSpec], Job]
                     outcome[spec.out] = r
                     progress.done += 1
                     progress.walls += (r.wall_s,)
+                    if r.ok and r.status != COMPLETE:
+                        progress.degraded += 1
+                        progress.say(f"v2vsim sweep: run {describe(spec)} {r.status}; its rows are kept in "
+                                     "sweep.csv with that status (docs/run.md \"How a run ends\")")
                     if not r.ok:
                         progress.failed += 1
                         progress.say(f"v2vsim sweep: run {describe(spec)} failed ({r.why}); last lines of "

@@ -28,6 +28,7 @@ LABELS = {"iou_vehicle": "vehicle IoU (visible, dataset-level)",
           "iou_vehicle_frame_mean": "vehicle IoU (per-frame mean)", "iou_road": "road IoU",
           "iou_lane": "lane IoU", "ap50": "AP@0.5", "ap70": "AP@0.7"}
 BASELINE, LEADER = "none", "cobevt"
+STATUS_COLUMN = "status"  # sweep.csv's last column: the run's metrics.json status
 
 
 @dataclass(frozen=True)
@@ -87,15 +88,17 @@ def point_stats(rows: Sequence[Row], pts: Sequence[Point], metric: str, b: int, 
 
 
 def write_csv(path: Path, axes: Sequence[Axis], rows: Sequence[Row]) -> list[str]:
-    """One row per (point, seed, method): swept keys, seed, method, every method metric. Returns the header."""
+    """One row per (point, seed, method): swept keys, seed, method, every method metric (the contract's
+    columns, in that order), then the run's `status` (complete, or degraded: ..., which a study filters on).
+    Returns the header."""
     metrics = metric_columns(rows)
-    header = [a.key for a in axes] + ["seed", "method", *metrics]
+    header = [a.key for a in axes] + ["seed", "method", *metrics, STATUS_COLUMN]
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(header)
         for r in rows:
             w.writerow([*r.point.texts, r.seed, r.method, *("" if r.metrics.get(k) is None else r.metrics[k]
-                                                          for k in metrics)])
+                                                          for k in metrics), r.status])
     return header
 
 
@@ -111,7 +114,7 @@ def sweep_json(meta: dict, axes: Sequence[Axis], rows: Sequence[Row], stats: Seq
     doc["rows"] = []
     for r in rows:
         row: dict[str, Any] = {**_point_json(axes, r.point), "seed": r.seed, "method": r.method, **r.metrics,
-                               "point": r.point.pid, "run": str(r.run_dir.relative_to(out))}
+                               "point": r.point.pid, "run": str(r.run_dir.relative_to(out)), "status": r.status}
         if r.per_frame:
             row["per_frame_iou_vehicle"] = [[f, round(v, 6)] for f, v in sorted(r.per_frame.items())]
         doc["rows"].append(row)
@@ -182,8 +185,16 @@ def sweep_md(meta: dict, axes: Sequence[Axis], rows: Sequence[Row], stats: Seque
                  f"({seeds[0]}-{seeds[-1]}), {meta['frames'] or 'all'} frames per run; overrides: "
                  + (", ".join(f"`{o}`" for o in meta["overrides"]) or "none") + ".")
     runs = meta["runs"]
+    degraded = runs.get("degraded", [])
     lines.append(f"Runs: {runs['complete']} complete ({runs['reused']} reused), "
-                 f"{len(failed)} failed" + (", **interrupted**" if meta.get("interrupted") else "") + ".")
+                 + (f"{len(degraded)} degraded, " if degraded else "")
+                 + f"{len(failed)} failed" + (", **interrupted**" if meta.get("interrupted") else "") + ".")
+    if degraded:
+        counted = "**counted** in the tables and plots below (--include-degraded)" if runs.get(
+            "include_degraded") else "left out of the tables and plots below (--include-degraded counts them)"
+        lines.append(f"**Degraded runs** (every frame, but agents lost or a method with no score: not the configured "
+                     f"run) are in sweep.csv with their `status`, and {counted}:")
+        lines += ["", *(f"- {d['point'] or 'no grid'} seed {d['seed']}: {d['status']}" for d in degraded), ""]
     if runs.get("replayed"):
         lines.append(f"{runs['simulated']} runs simulated, {runs['replayed']} replayed with `v2vsim evaluate` "
                      "from the recording of the same seed at a point that differs only in receiver-side keys "

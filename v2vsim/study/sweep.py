@@ -3,10 +3,16 @@ metrics with 95% bootstrap intervals (DESIGN.md "Studies, channel and environmen
 
     DIR/runs/<point>/seed<k>/   each run's own output (metrics.json, report.md, sweep-run.log, ...); a
                                 run other points replay keeps its recording there (messages/)
-    DIR/sweep.csv               one row per (grid point, seed, method): swept keys, seed, method, metrics
-    DIR/sweep.json              grid, seeds, frames, rows, statistics, failed runs
+    DIR/sweep.csv               one row per (grid point, seed, method): swept keys, seed, method, metrics,
+                                then the run's status (complete, or degraded: ...)
+    DIR/sweep.json              grid, seeds, frames, rows, statistics, failed and degraded runs
     DIR/sweep.md                per swept key: mean [95% CI] per method and point, paired differences
     DIR/sweep_<key>_<metric>.png
+
+A degraded run (it went through every frame, but lost agents or scored nothing for a method:
+v2vsim.evaluation.status) is no failure: its rows are in sweep.csv and sweep.json with its status, but the
+intervals, tables and plots leave it out unless --include-degraded, since its scores are not the configured
+run's. Exit 0 with degraded runs, as `v2vsim run` does; 1 when a run failed.
 """
 
 from __future__ import annotations
@@ -19,9 +25,10 @@ from pathlib import Path
 from typing import TextIO
 
 from v2vsim.config import ConfigError, check_output_dir, find_scenario, load_scenario
+from v2vsim.evaluation.status import COMPLETE
 from v2vsim.study.grid import Axis, Point, base_overrides, parse_axes, parse_seeds, points, validate
 from v2vsim.study.plan import RunSpec, plan, replay_refusal
-from v2vsim.study.rows import collect, methods_of
+from v2vsim.study.rows import collect, counted, methods_of
 from v2vsim.study.runs import LOG, Job, Progress, RunResult, execute, start_process
 from v2vsim.study.stats import DEFAULT_B, DEFAULT_RNG_SEED, LEVEL
 
@@ -42,6 +49,7 @@ class SweepArgs:
     engine: str = "local"  # local | dask (v2vsim/study/cluster.py)
     scheduler: str | None = None  # dask: the scheduler's address, e.g. tcp://10.0.0.1:8786
     replay: bool = True  # record once per seed, replay the points that differ only in receiver-side keys
+    include_degraded: bool = False  # count degraded runs in the intervals, tables and plots
 
 
 @dataclass(frozen=True)
@@ -127,8 +135,12 @@ def sweep(args: SweepArgs, start: Callable[[RunSpec], Job] | None = None, stream
         if client is not None:
             client.close()
     failed = [r for r in results if not r.ok]
-    print(f"v2vsim sweep: {'interrupted' if interrupted else 'done'}: {sum(r.ok for r in results)} of "
-          f"{len(d.specs)} runs complete, {len(failed)} failed; {paths[0]}", file=stream)
+    degraded = [r for r in results if r.ok and r.status != COMPLETE]
+    where = "counted in" if args.include_degraded else "left out of"
+    print(f"v2vsim sweep: {'interrupted' if interrupted else 'done'}: {sum(r.ok for r in results) - len(degraded)} "
+          f"of {len(d.specs)} runs complete, "
+          + (f"{len(degraded)} degraded ({where} the intervals), " if degraded else "")
+          + f"{len(failed)} failed; {paths[0]}", file=stream)
     kept = [s.out / "messages" for s in d.specs if s.records and (s.out / "messages").is_dir()]
     if kept:
         size = sum(f.stat().st_size for m in kept for f in m.iterdir() if f.is_file())
@@ -147,16 +159,20 @@ def write_outputs(args: SweepArgs, d: Design, results: Sequence[RunResult], inte
     order = {s.out: i for i, s in enumerate(d.specs)}
     results = sorted(results, key=lambda r: order[r.spec.out])
     rows = collect(results)
-    stats = [s for m in STAT_METRICS for s in point_stats(rows, d.points, m, args.bootstrap, DEFAULT_RNG_SEED)]
+    kept = counted(rows, args.include_degraded)  # what the statistics, tables and plots take
+    stats = [s for m in STAT_METRICS for s in point_stats(kept, d.points, m, args.bootstrap, DEFAULT_RNG_SEED)]
     failed = [{"point": ", ".join(r.spec.grid), "seed": r.spec.seed, "code": r.code, "why": r.why,
                "tail": list(r.tail), "log": str(r.spec.out / LOG)} for r in results if not r.ok]
+    degraded = [{"point": ", ".join(r.spec.grid), "seed": r.spec.seed, "status": r.status,
+                 "run": str(r.spec.out.relative_to(args.out))} for r in results if r.ok and r.status != COMPLETE]
     meta = {"scenario": str(args.scenario), "scenario_name": d.name, "seeds": d.seeds, "frames": args.frames,
             "points": [p.pid for p in d.points], "overrides": d.base, "jobs": args.jobs, "engine": args.engine,
             "bootstrap": {"b": args.bootstrap, "rng_seed": DEFAULT_RNG_SEED, "level": LEVEL,
                           "method": "paired two-level bootstrap (seeds, then frames within each seed), "
                                     "expanded percentile intervals"},
-            "runs": {"total": len(d.specs), "complete": sum(r.ok for r in results),
-                     "reused": sum(r.reused for r in results), "failed": failed,
+            "runs": {"total": len(d.specs), "complete": sum(r.ok for r in results) - len(degraded),
+                     "reused": sum(r.reused for r in results), "failed": failed, "degraded": degraded,
+                     "include_degraded": args.include_degraded,
                      "simulated": sum(not s.replayed for s in d.specs), "replayed": sum(s.replayed for s in d.specs),
                      "replayed_points": sorted({s.point.pid for s in d.specs if s.replayed}),
                      "no_replay": d.no_replay},
@@ -164,7 +180,7 @@ def write_outputs(args: SweepArgs, d: Design, results: Sequence[RunResult], inte
     out = args.out
     paths = [out / "sweep.csv", out / "sweep.json", out / "sweep.md"]
     write_csv(paths[0], d.axes, rows)
-    pngs = plot_all(out, d.axes, methods_of(rows), stats, d.name) if rows else []
+    pngs = plot_all(out, d.axes, methods_of(kept), stats, d.name) if kept else []
     write_json(paths[1], sweep_json(meta, d.axes, rows, stats, out) | {"plots": [p.name for p in pngs]})
-    paths[2].write_text(sweep_md(meta, d.axes, rows, stats, failed, [p.name for p in pngs]))
+    paths[2].write_text(sweep_md(meta, d.axes, kept, stats, failed, [p.name for p in pngs]))
     return paths + pngs

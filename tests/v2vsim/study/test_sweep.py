@@ -193,6 +193,7 @@ def test_fake_sweep_resumes_reruns_what_is_not_complete_and_reports_failures(tmp
     assert "v2vsim sweep: 6/6 runs (2 failed), 0 running" in text and "ETA" in text
     rows = _csv(out / "sweep.csv")
     assert list(rows[0])[:3 + len(CONTRACT_METRICS)] == ["comm.drop.p", "seed", "method", *CONTRACT_METRICS]
+    assert list(rows[0])[-1] == "status" and {r["status"] for r in rows} == {"complete"}  # added after the contract's
     assert len(rows) == 4 * 3  # 4 complete runs x 3 methods
     doc = json.loads((out / "sweep.json").read_text())
     assert sorted((f["point"], f["seed"], f["code"]) for f in doc["runs"]["failed"]) == [
@@ -227,6 +228,72 @@ def test_fake_sweep_resumes_reruns_what_is_not_complete_and_reports_failures(tmp
     assert "## comm.drop.p" in md and "| cobevt - none |" in md and "+0.200 [0.200, 0.200] **\\***" in md
     for m in ("iou_vehicle", "iou_vehicle_frame_mean", "ap50", "ap70"):
         assert (out / f"sweep_comm.drop.p_{m}.png").stat().st_size > 5000
+
+
+class DegradingStarter(FakeStarter):
+    """Runs that go through every frame; those in `degraded` lose cav1 at frame 1 (what the ego then says)."""
+
+    def __init__(self, degraded: set[tuple[str, int]]) -> None:
+        super().__init__()
+        self.degraded = degraded
+
+    def __call__(self, spec: plan_mod.RunSpec) -> FakeJob:
+        job = super().__call__(spec)
+        if (spec.point.texts[0], spec.seed) in self.degraded:
+            doc = _fake_metrics(spec) | {"status": "degraded: cav1 lost from frame 1", "lost_agents": {"cav1": 1}}
+            doc["methods"]["cobevt"]["iou_vehicle"] = 0.0  # what a lost neighbour costs: not a configured run's
+            spec.out.joinpath("metrics.json").write_text(json.dumps(doc))
+        return job
+
+
+def test_degraded_runs_are_rows_with_their_status_left_out_of_the_intervals_and_rerun_on_resume(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 45: a run that lost agents went through every frame: no failure (exit 0), its rows are in sweep.csv
+    with its status, and the statistics leave it out unless --include-degraded; a resumed sweep runs it again."""
+    import io
+
+    from v2vsim.study import plots
+
+    monkeypatch.setattr(runs_mod.time, "sleep", lambda s: None)
+    monkeypatch.setattr(plots, "plot_all", lambda *a, **k: [])
+    out = tmp_path / "sweep"
+    log = io.StringIO()
+    assert sweep(_args(out), start=DegradingStarter({("0", 1)}), stream=log) == 0
+    text = log.getvalue()
+    assert "run [comm.drop.p=0] seed 1 degraded: cav1 lost from frame 1; its rows are kept" in text
+    assert "5 of 6 runs complete, 1 degraded (left out of the intervals), 0 failed" in text
+    rows = _csv(out / "sweep.csv")
+    assert list(rows[0])[:3 + len(CONTRACT_METRICS)] == ["comm.drop.p", "seed", "method", *CONTRACT_METRICS]
+    assert list(rows[0])[-1] == "status" and len(rows) == 6 * 3
+    assert [r["status"] for r in rows if (r["comm.drop.p"], r["seed"]) == ("0", "1")] == \
+        ["degraded: cav1 lost from frame 1"] * 3
+    assert {r["status"] for r in rows if (r["comm.drop.p"], r["seed"]) != ("0", "1")} == {"complete"}
+    doc = json.loads((out / "sweep.json").read_text())
+    assert doc["runs"]["complete"] == 5 and doc["runs"]["failed"] == [] and not doc["runs"]["include_degraded"]
+    assert doc["runs"]["degraded"] == [{"point": "comm.drop.p=0", "seed": 1, "status": "degraded: cav1 lost from "
+                                        "frame 1", "run": "runs/comm.drop.p=0/seed1"}]
+    assert {r["status"] for r in doc["rows"] if r["seed"] == 1 and r["point"] == "comm.drop.p=0"} == {
+        "degraded: cav1 lost from frame 1"}
+
+    def cobevt(d: dict) -> dict:
+        st = next(s for s in d["stats"] if s["metric"] == "iou_vehicle" and s["point"] == {"comm.drop.p": 0})
+        return st["methods"]["cobevt"]
+
+    assert cobevt(doc)["seeds"] == 2 and cobevt(doc)["mean"] == pytest.approx(0.61)  # seeds 0 and 2 only
+    md = (out / "sweep.md").read_text()
+    assert "1 degraded" in md and "- comm.drop.p=0 seed 1: degraded: cav1 lost from frame 1" in md
+    assert "left out of the tables and plots below (--include-degraded counts them)" in md
+
+    # --include-degraded: the same runs (reused) counted; a resume without it runs the degraded one again
+    start = DegradingStarter({("0", 1)})
+    assert sweep(_args(out), start=start, stream=io.StringIO()) == 0 and start.started == [("0", 1)]
+    counted = tmp_path / "counted"
+    assert sweep(SweepArgs(**{**_args(counted).__dict__, "include_degraded": True}),
+                 start=DegradingStarter({("0", 1)}), stream=io.StringIO()) == 0
+    doc = json.loads((counted / "sweep.json").read_text())
+    assert doc["runs"]["include_degraded"] and cobevt(doc)["seeds"] == 3
+    assert cobevt(doc)["mean"] == pytest.approx((0.6 + 0.0 + 0.62) / 3)
+    assert "**counted** in the tables" in (counted / "sweep.md").read_text()
 
 
 def test_two_keys_and_ctrl_c_keeps_what_finished(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
