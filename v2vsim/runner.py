@@ -22,7 +22,6 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import dataclasses
-import json
 import os
 import re
 import signal
@@ -44,6 +43,7 @@ from v2vsim.comm.transport import TransportError, free_ports, loopback_endpoint,
 from v2vsim.config import ConfigError, Scenario, check_output_dir
 from v2vsim.evaluation.status import cav_ranges, terminal_line
 from v2vsim.perception.build import check_scenario, method_checkpoints, runnable_methods, zoo_for
+from v2vsim.run_outcome import ego_statuses, write_failure_metrics
 from v2vsim.sensors.sensing import ego_ids
 from v2vsim.traffic.base import cav_id
 
@@ -201,11 +201,11 @@ def run(sc: Scenario, out: Path, frames: int | None = None, remote_cavs: tuple[s
         display.close()
         signal.signal(signal.SIGTERM, previous)
     if code not in (0, 130):
-        _write_failure_metrics(out, sc, egos, failures)
+        write_failure_metrics(out, sc, egos, failures)
     if not interrupted and code == 0:
         report = out / "report.md"
         if report.is_file():  # the last line says what metrics.json says: complete, or what happened instead
-            print(terminal_line(_statuses(out, egos), str(report)), file=sys.stderr)
+            print(terminal_line(ego_statuses(out, egos), str(report)), file=sys.stderr)
         else:
             print(f"v2vsim: error: the run ended but no report was written to {out}", file=sys.stderr)
             code = 1
@@ -289,35 +289,6 @@ def _pump(child: Child, display: ProgressDisplay) -> None:
 def _overrides_for_children(sc: Scenario) -> list[str]:
     """Children re-read the scenario file; command-line overrides travel with them."""
     return list(sc.overrides)
-
-
-def _write_failure_metrics(out: Path, sc: Scenario, egos: list[str], failures: list[str]) -> None:
-    """A run that failed before an ego wrote its results (the ego killed, a crash before it started) still
-    leaves metrics.json, with the contract's keys empty and `status` saying what happened, so that a sweep or
-    a script reading the folder sees why instead of nothing."""
-    why = "; ".join(failures) or "the run failed"
-    for e in egos:
-        folder = out / ("" if e == egos[0] else f"ego_{e}")
-        if (folder / "metrics.json").exists():
-            continue
-        folder.mkdir(parents=True, exist_ok=True)
-        (folder / "metrics.json").write_text(json.dumps({
-            "scenario": sc.name, "seed": sc.seed, "overrides": list(sc.overrides), "frames": 0,
-            "cavs": sc.cavs.count, "modality": sc.perception.modality, "real_time_factor": None, "comm": {},
-            "methods": {}, "ego": e, "status": f"failed: {why} (no results; written by the runner)",
-            "encoder": sc.perception.encoder, "preset": sc.perception.preset}, indent=2))
-
-
-def _statuses(out: Path, egos: list[str]) -> dict[str, str]:
-    """Each ego's metrics.json status (v2vsim.evaluation.status), for the runner's last line."""
-    got = {}
-    for e in egos:
-        try:
-            got[e] = str(json.loads((out / ("" if e == egos[0] else f"ego_{e}") / "metrics.json").read_text())
-                         .get("status", "no status in metrics.json"))
-        except (OSError, ValueError, AttributeError):
-            got[e] = "no readable metrics.json"
-    return got
 
 
 def _describe(name: str, rc: int) -> str:

@@ -1,4 +1,4 @@
-"""What a run leaves behind: metrics.json (DESIGN.md contract), report.md and PNG plots."""
+"""What a run leaves behind: metrics.json (DESIGN.md contract), report.md and the PNG plots (run_plots)."""
 
 from __future__ import annotations
 
@@ -7,14 +7,12 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
 from v2vsim.comm.stats import CommStats
-from v2vsim.comm.tr37885 import expected_delivery
 from v2vsim.comm.wire_spec import message_kind
-from v2vsim.config import ChannelConfig, Scenario
+from v2vsim.config import Scenario
 from v2vsim.evaluation.block_bootstrap import LEVEL, REPLICATES, paired_difference
 from v2vsim.evaluation.metrics import MethodScore, neighbour_shares, paired_counts
+from v2vsim.evaluation.run_plots import distance_bins, plot
 from v2vsim.evaluation.status import explain
 from v2vsim.perception.precision import resolve as resolve_precision
 
@@ -284,10 +282,10 @@ def _link_states_md(doc: dict, summary: RunSummary) -> list[str]:
     lines = ["", f"Radio (`comm.channel.model: tr37885`, {ch.scenario}, {ch.carrier_ghz:g} GHz, MCS {ch.mcs}, "
              f"{ch.tx_power_dbm:g} dBm): messages in range by link state LOS {c['los']}, NLOS {c['nlos']}, "
              f"NLOSv {c['nlosv']}. Delivery ratio by distance (delivered / sent):", "",
-             "| link state | " + " | ".join(f"{b} m" for b in _distance_bins(c)) + " |",
-             "|---|" + "---|" * len(_distance_bins(c))]
+             "| link state | " + " | ".join(f"{b} m" for b in distance_bins(c)) + " |",
+             "|---|" + "---|" * len(distance_bins(c))]
     for state, bins in (c.get("delivery_by_distance") or {}).items():
-        cells = [f"{bins[b]['ratio']:.2f} ({bins[b]['sent']})" if b in bins else "-" for b in _distance_bins(c)]
+        cells = [f"{bins[b]['ratio']:.2f} ({bins[b]['sent']})" if b in bins else "-" for b in distance_bins(c)]
         lines.append(f"| {state} | " + " | ".join(cells) + " |")
     return lines
 
@@ -328,11 +326,6 @@ def _age_md(doc: dict, deadline_ms: float) -> list[str]:
     return lines
 
 
-def _distance_bins(comm: dict) -> list[str]:
-    bins = {b for per in (comm.get("delivery_by_distance") or {}).values() for b in per}
-    return sorted(bins, key=lambda b: float(b.split("-")[0]))
-
-
 def _neighbours_md(doc: dict, summary: RunSummary) -> list[str]:
     """The share of the fused frames with 0, 1, 2, ... other CAVs within comm range of the ego."""
     shares = doc.get("neighbours_in_range") or {}
@@ -345,75 +338,6 @@ def _neighbours_md(doc: dict, summary: RunSummary) -> list[str]:
             "| CAVs in range | " + " | ".join(shares) + " |",
             "|---|" + "---|" * len(shares),
             "| share of frames | " + " | ".join(f"{_fmt(v, True)} %" for v in shares.values()) + " |"]
-
-
-def plot(out: Path, doc: dict, scores: dict[str, MethodScore], channel: ChannelConfig | None = None) -> list[Path]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    paths = []
-    methods = list(doc["methods"])
-    keys = [("iou_vehicle", "vehicle (visible)"), ("iou_road", "road"), ("iou_lane", "lane")]
-    fig, ax = plt.subplots(figsize=(max(6, 1.1 * len(methods) + 2), 4))
-    w = 0.8 / len(keys)
-    for j, (k, label) in enumerate(keys):
-        vals = [doc["methods"][m][k] or 0.0 for m in methods]
-        ax.bar(np.arange(len(methods)) + (j - 1) * w, vals, w, label=label)
-    ax.set_xticks(np.arange(len(methods)), methods)
-    ax.set_ylabel("IoU")
-    ax.set_ylim(0, 1.15)  # room above the bars for the legend
-    ax.set_yticks(np.linspace(0, 1, 6))
-    ax.set_title(f"{doc['scenario']}: IoU by method ({doc['frames']} frames)")
-    ax.legend(ncol=3, loc="upper center", fontsize=9)
-    fig.tight_layout()
-    paths.append(out / "iou_by_method.png")
-    fig.savefig(paths[-1], dpi=100)
-    plt.close(fig)
-
-    fig, ax = plt.subplots(figsize=(8, 4))
-    for m in methods:
-        ax.plot(scores[m].vehicle.per_frame, label=m, lw=1)
-    ax.set_xlabel("frame (with vehicle cells)")
-    ax.set_ylabel("IoU vehicle (visible)")
-    ax.set_ylim(0, 1)
-    ax.legend(ncol=4, fontsize=8)
-    fig.tight_layout()
-    paths.append(out / "iou_per_frame.png")
-    fig.savefig(paths[-1], dpi=100)
-    plt.close(fig)
-
-    if doc["comm"].get("delivery_by_distance") is not None:
-        paths.append(plot_delivery_by_distance(out / "delivery_by_distance.png", doc, channel))
-    return paths
-
-
-def plot_delivery_by_distance(path: Path, doc: dict, channel: ChannelConfig | None) -> Path:
-    """Delivery ratio per distance bin and link state (tr37885), with the expected LOS / NLOS curves."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    bins = _distance_bins(doc["comm"])
-    fig, ax = plt.subplots(figsize=(7, 4))
-    for state, per in doc["comm"]["delivery_by_distance"].items():
-        xs = [sum(map(float, b.split("-"))) / 2 for b in bins if b in per]
-        line, = ax.plot(xs, [per[b]["ratio"] for b in bins if b in per], "o-", label=f"{state.upper()} (measured)")
-        if channel is not None and state != "nlosv" and bins:
-            ds = np.linspace(1.0, float(bins[-1].split("-")[1]), 120)
-            ax.plot(ds, [expected_delivery(channel, state, d) for d in ds], "--", color=line.get_color(), lw=1,
-                    label=f"{state.upper()} (TR 37.885, expected)")
-    ax.set_xlabel("sender-receiver distance (m, bin centre)")
-    ax.set_ylabel("delivery ratio")
-    ax.set_ylim(0, 1.05)
-    ax.set_title(f"{doc['scenario']}: delivery by distance and link state (tr37885)")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
 
 
 def write_outputs(out: Path, summary: RunSummary, scores: dict[str, MethodScore], comm: CommStats,

@@ -156,7 +156,7 @@ def test_per_frame_vehicle_counts_add_up_to_the_dataset_iou() -> None:
 
 def test_report_and_plot_of_link_states_under_tr37885(tmp_path) -> None:
     from v2vsim.comm.channel import Delivery
-    from v2vsim.evaluation.report import plot
+    from v2vsim.evaluation.run_plots import plot
 
     comm = CommStats()
     comm.track_link_states()
