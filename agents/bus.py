@@ -53,7 +53,6 @@ from v2vsim.comm.transport import message_key, parse_key
 
 START_TIMEOUT_S = 300.0  # agents import torch and build their models before they are ready
 DRIVER_GRACE_S = 1.0  # after the driver's token drops, how long its `bye` or `done` may still take to arrive
-DONE_GRACE_S = 5.0  # without comm.auth, an unverifiable `done` is believed after this long without a world
 HEARTBEAT_S = 1.0  # under comm.auth every process says a signed hello this often
 SILENCE_S = 8.0  # under comm.auth, a process without a hello for this long is gone (its token notwithstanding)
 
