@@ -324,8 +324,8 @@ class Bus:
                 self._reject(kind, sender, e)
 
         # run on zenoh's own thread (indirect=False), not queued for a Python thread: zenoh-python's default queue
-        # has no bound, so a flood faster than the callbacks grew it without limit (+370 MiB for 100 worlds of
-        # 8 MiB when each callback took 10 ms); called directly, a slow receiver slows the sender down instead
+        # has no bound, so a flood faster than the callbacks grew it without limit (+290 to +400 MiB for 100
+        # worlds of 8 MiB when each callback took 10 ms); called directly, a slow receiver slows the sender down
         self._keep.append(self.session.declare_subscriber(f"v2vsim/{self.run_id}/{kind}/*",
                                                           zenoh.handlers.Callback(on_sample, indirect=False)))
 

@@ -28,8 +28,9 @@ ZENOH_SLACK_BYTES = 64 << 10  # what zenoh adds around a payload (key expression
 
 def receive_bound(largest: int | None) -> int | None:
     """The zenoh message bound of a process whose longest accepted message is `largest` bytes (None: no bound):
-    zenoh drops a longer one before reassembling it, so a 64 MiB message for a process that takes at most a few
-    MiB costs it no 64 MiB buffer (issue 45; the Bus then checks each kind's own bound before copying)."""
+    zenoh drops a message far longer before reassembling it, so a 64 MiB message for a process that takes at
+    most 16 MiB costs it no 64 MiB buffer (issue 45; zenoh 1.10 enforces it reliably only over ~16 MiB, and the
+    Bus checks each kind's own bound, before copying, for the rest)."""
     return None if largest is None else max(1 << 20, largest + ENVELOPE_BYTES + ZENOH_SLACK_BYTES)
 
 

@@ -11,8 +11,9 @@ What zenoh 1.10 does here (checked on this machine):
     its own "#exit_on_failure=false" must connect within the timeout.
   * Peers do not forward between other peers (routing "peer_to_peer"): with gossip off, two
     agents exchange data only over a direct link or through a router.
-  * A message longer than transport/link/rx/max_message_size is dropped by the receiver's zenoh before
-    it is reassembled (no copy of it in that process), and the link and later messages go on.
+  * A message far longer than transport/link/rx/max_message_size is dropped by the receiver's zenoh before
+    it is reassembled (no copy of it in that process), and the link and later messages go on. Only those
+    over ~16 MiB reliably: of 20 messages of 8 MiB under a 1.2 MB bound, 18 were delivered.
 So `open_session` makes the user's transport.connect endpoints (a router, usually) required,
 with a timeout, and the `peers` endpoints (other agents, which may start later) optional and
 retried; both failure modes come back as a one-line TransportError for the CLI to print
@@ -117,7 +118,8 @@ def zenoh_config(transport_cfg: TransportConfig, listen_port: int | None = None,
         `peers` (other agents' listen endpoints) are optional and retried every 0.1-1 s.
     max_message_bytes: zenoh's own bound on a message it reassembles from fragments
         (transport/link/rx/max_message_size, default 1 GiB): a longer one is dropped by zenoh, uncounted,
-        before it takes any memory beyond a fragment; the link stays up (checked on zenoh 1.10).
+        before it takes memory beyond the bound; the link stays up (zenoh 1.10: reliably only for messages
+        over ~16 MiB, so receivers still check lengths themselves).
     """
     if transport_cfg.mode == "client" and not transport_cfg.connect:
         raise TransportError("transport.mode is 'client' but transport.connect names no router endpoint")
