@@ -19,8 +19,10 @@ without a hello (a token someone else holds on its key cannot keep a dead proces
 Control kinds (v2vsim.comm.control: world, done, ack, start, static, vis, scan, bye) are checked by
 the Bus itself: only the processes allowed to send a kind are heard, and with comm.auth on
 every control message is signed under the run key and verified on receipt. Invalid ones are
-dropped and counted (`control_rejections`), with one warning per kind on stderr. The V2V data
-kinds pass through untouched: the codec signs and checks those.
+dropped and counted (`control_rejections`), with one warning per kind on stderr; so are those a
+subscriber refuses (an ack for a frame not published yet, a world outside the window). The V2V data
+kinds pass through untouched: the codec signs and checks those. Every kind has a length bound that
+is checked before a message is copied off zenoh (ZBytes' length), so a huge message costs no copy.
 """
 
 from __future__ import annotations
@@ -39,8 +41,10 @@ from v2vsim.comm.codec import RejectedMessage, Signer
 from v2vsim.comm.control import (
     CONTROL_KINDS,
     DRIVER,
+    ENVELOPE_BYTES,
     ControlPolicy,
     ReplayGuard,
+    max_payload_bytes,
     open_sealed,
     process_id,
     seal,
@@ -49,7 +53,6 @@ from v2vsim.comm.transport import message_key, parse_key
 
 START_TIMEOUT_S = 300.0  # agents import torch and build their models before they are ready
 DRIVER_GRACE_S = 1.0  # after the driver's token drops, how long its `bye` or `done` may still take to arrive
-DONE_GRACE_S = 5.0  # without comm.auth, an unverifiable `done` is believed after this long without a world
 HEARTBEAT_S = 1.0  # under comm.auth every process says a signed hello this often
 SILENCE_S = 8.0  # under comm.auth, a process without a hello for this long is gone (its token notwithstanding)
 
@@ -268,26 +271,63 @@ class Bus:
         pub.put(data)
         return len(data)
 
-    def subscribe(self, kind: str, callback: Callable[[str, bytes], None]) -> None:
+    def subscribe(self, kind: str, callback: Callable[[str, bytes], None], *, max_bytes: int | None = None,
+                  oversize: Callable[[str], None] | None = None) -> None:
         """callback(sender, payload) on zenoh's thread for every valid message of `kind`; keep it short.
 
-        Control kinds arrive verified and unwrapped; invalid ones never reach the callback."""
-        self._subscribe(kind, callback, by_name=False)
+        Control kinds arrive verified and unwrapped; invalid ones never reach the callback. The callback refuses
+        a control message by raising RejectedMessage (e.g. an ack for a frame not published yet): counted like
+        the Bus's own refusals. A message longer than `max_bytes` (a control kind's payload: at most
+        max_payload_bytes(kind)) is refused from its length alone, before it is copied off the transport, so a
+        huge one costs no copy: a control kind's is counted (size_mismatch), a data kind's reported to
+        `oversize(sender)` (the receiver counts its own kinds)."""
+        self._subscribe(kind, callback, by_name=False, max_bytes=max_bytes, oversize=oversize)
 
-    def _subscribe(self, kind: str, callback: Callable[[str, bytes], None], by_name: bool = True) -> None:
+    def _limit(self, kind: str, max_bytes: int | None) -> int | None:
+        """The longest message of `kind` kept off the transport: a control kind's payload bound plus its envelope."""
+        if kind not in CONTROL_KINDS:
+            return max_bytes
+        payload = max_bytes if max_bytes is not None else max_payload_bytes(kind)
+        return None if payload is None else payload + (ENVELOPE_BYTES if self.key is not None else 0)
+
+    def _too_long(self, kind: str, sender: str, payload: zenoh.ZBytes, limit: int | None,
+                  oversize: Callable[[str], None] | None = None) -> bool:
+        """Whether a message is over `limit` (then refused and counted); only its length is read."""
+        n = len(payload)
+        if limit is None or n <= limit:
+            return False
+        if kind in CONTROL_KINDS:
+            self._reject(kind, sender, RejectedMessage("size_mismatch", f"{n} bytes, at most {limit}"))
+        elif oversize is not None:
+            oversize(sender)
+        return True
+
+    def _subscribe(self, kind: str, callback: Callable[[str, bytes], None], by_name: bool = True,
+                   max_bytes: int | None = None, oversize: Callable[[str], None] | None = None) -> None:
         """subscribe(), with callback(process name, payload) when by_name (see `_open`)."""
         guard = ReplayGuard()
+        limit = self._limit(kind, max_bytes)
 
         def on_sample(sample: zenoh.Sample) -> None:
             try:
                 _, _, sender = parse_key(str(sample.key_expr))
             except ValueError:
                 return
+            if self._too_long(kind, sender, sample.payload, limit, oversize):
+                return
             opened = self._open(kind, sender, sample.payload.to_bytes(), guard)
-            if opened is not None:
+            if opened is None:
+                return
+            try:
                 callback(opened[0] if by_name else sender, opened[1])
+            except RejectedMessage as e:
+                self._reject(kind, sender, e)
 
-        self._keep.append(self.session.declare_subscriber(f"v2vsim/{self.run_id}/{kind}/*", on_sample))
+        # run on zenoh's own thread (indirect=False), not queued for a Python thread: zenoh-python's default queue
+        # has no bound, so a flood faster than the callbacks grew it without limit (+290 to +400 MiB for 100
+        # worlds of 8 MiB when each callback took 10 ms); called directly, a slow receiver slows the sender down
+        self._keep.append(self.session.declare_subscriber(f"v2vsim/{self.run_id}/{kind}/*",
+                                                          zenoh.handlers.Callback(on_sample, indirect=False)))
 
     def serve(self, kind: str, data: bytes) -> None:
         """Answer queries on v2vsim/<run>/<kind>/<me> with `data` (e.g. the static map)."""
@@ -298,12 +338,13 @@ class Bus:
     def fetch(self, kind: str, sender: str, timeout_s: float) -> bytes:
         """Query what another process serves, retrying until a valid answer comes or `timeout_s` passes."""
         key = message_key(self.run_id, kind, sender)
+        limit = self._limit(kind, None)
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             # every queryable's reply, not zenoh's pick of one: an impostor's must not hide the real one
             for reply in self.session.get(key, target=zenoh.QueryTarget.ALL,
                                           consolidation=zenoh.ConsolidationMode.NONE, timeout=5.0):
-                if reply.ok is not None:
+                if reply.ok is not None and not self._too_long(kind, sender, reply.ok.payload, limit):
                     opened = self._open(kind, sender, reply.ok.payload.to_bytes(), None)
                     if opened is not None:
                         return opened[1]

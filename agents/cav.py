@@ -11,7 +11,6 @@ applied by receivers.
 from __future__ import annotations
 
 import json
-import queue
 import sys
 import threading
 import time
@@ -19,9 +18,10 @@ import time
 import torch
 
 from agents.args import AgentArgs, parse_agent_args, run_signer
-from agents.bus import DONE_GRACE_S, DRIVER_GRACE_S, START_TIMEOUT_S, Bus
-from agents.lifecycle import run_agent
+from agents.bus import DRIVER_GRACE_S, START_TIMEOUT_S, Bus
+from agents.lifecycle import receive_bound, run_agent
 from agents.timing import StageTimer, write_timing
+from agents.worlds import WorldQueue, world_window
 from v2vsim.comm.codec import Message, encode
 from v2vsim.comm.control import DRIVER
 from v2vsim.comm.share import feature_message
@@ -41,7 +41,7 @@ from v2vsim.sensors.camera import render_cameras
 from v2vsim.sensors.scene import Scene, build_map_assets, build_scene
 from v2vsim.sensors.sensing import SensorFrame, sense
 from v2vsim.world.geometry import Pose
-from v2vsim.world.serialize import static_from_bytes, world_from_bytes
+from v2vsim.world.serialize import MAX_STATIC_BYTES, MAX_WORLD_BYTES, static_from_bytes, world_from_bytes
 from v2vsim.world.state import WorldState
 
 
@@ -63,31 +63,24 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
         single = build_method_models(sc, encoder, ("late",) if late else ("none",))["late" if late else "none"]
     static = static_from_bytes(bus.fetch("static", "main", START_TIMEOUT_S))
     assets = build_map_assets(static)
-    worlds: queue.Queue[bytes] = queue.Queue()
+    realtime = sc.transport.clock == "realtime"
+    worlds = WorldQueue(world_window(sc), realtime)  # bounded: a forged far-future world is refused, not sensed
     done = threading.Event()
     bus.subscribe("world", lambda sender, data: worlds.put(data))
     bus.subscribe("done", lambda sender, data: done.set())
     bus.ready()
-    realtime = sc.transport.clock == "realtime"
     seen = False
-    last_world: float | None = None
-    done_at: float | None = None
     gone_at: float | None = None  # when the driver's token was seen gone without a done
     frame = -1
     timer = StageTimer()
     try:
         while True:
             now = time.monotonic()
-            if done.is_set():
-                done_at = done_at or now
-                # A verified done ends the agent; without comm.auth anyone could have sent it, so it is
-                # believed once the driver is gone too or no world came for DONE_GRACE_S.
-                if bus.authenticated or bus.driver_gone() or now - max(done_at, last_world or 0.0) > DONE_GRACE_S:
-                    return 0
-            try:
-                with timer.stage("wait"):
-                    data = worlds.get(timeout=0.2 if done_at or gone_at else 0.5)
-            except queue.Empty:
+            if done.is_set() and done_believed(bus, frame, args.frames):
+                return 0
+            with timer.stage("wait"):
+                data = worlds.take(timeout=0.2 if done.is_set() or gone_at else 0.5)
+            if data is None:
                 if bus.driver_gone() and not done.is_set():
                     gone_at = gone_at or now
                     bye = bus.farewell(DRIVER)
@@ -100,10 +93,6 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
                               file=sys.stderr, flush=True)
                         return 1
                 continue
-            last_world = time.monotonic()
-            if realtime:  # sense the newest world; frames we could not keep up with are skipped
-                while not worlds.empty():
-                    data = worlds.get_nowait()
             try:
                 world = world_from_bytes(data, static)
             except ValueError as e:
@@ -153,7 +142,15 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
                     bus.put("scan", _scan(world, actor.pose, sf, scene, args))
             timer.frame_done()
     finally:
-        write_timing(args.out, f"cav.{me}", timer)
+        write_timing(args.out, f"cav.{me}", timer, bus.control_rejections())
+
+
+def done_believed(bus: Bus, frame: int, frames: int) -> bool:
+    """Whether a `done` ends this CAV. A verified one does. Without comm.auth anyone could have sent it: it is
+    believed once the driver is gone, or once this CAV sensed the run's last frame; an honest driver says done
+    only after every frame was fused, so a done any earlier is from the future (the old rule, believed after
+    DONE_GRACE_S without a world, let one forged done end every CAV while the driver waited for a slow ego)."""
+    return bus.authenticated or frame >= frames - 1 or bus.driver_gone()
 
 
 def _scan(world: WorldState, pose: Pose, sf: SensorFrame, scene: Scene, args: AgentArgs) -> bytes:
@@ -178,7 +175,8 @@ def _seen_actor_ids(world: WorldState, sf: SensorFrame) -> set[str]:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_agent_args("cav", argv)
-    return run_agent(args, "cav", args.cav, lambda bus: cav_loop(args, bus))
+    return run_agent(args, "cav", args.cav, lambda bus: cav_loop(args, bus),  # it takes worlds and the static map
+                     max_message_bytes=receive_bound(max(MAX_WORLD_BYTES, MAX_STATIC_BYTES)))
 
 
 if __name__ == "__main__":

@@ -4,7 +4,8 @@ lockstep: frame k+1 is published only after every ego acknowledged frame k - tra
 so the CAVs sense and encode the next frames while the egos fuse this one, and the run is still
 deterministic for a seed (egos fuse frames in order, each once all its messages are in). realtime: frames go out at
 rate_hz on the wall clock whether or not anyone kept up. In both, the driver stops (exit 1) once
-every ego process is gone: nobody would fuse what it publishes.
+every ego process is gone: nobody would fuse what it publishes. An ack for a frame the driver has not
+published is refused and counted (timing/driver.json control_rejections), never believed.
 """
 
 from __future__ import annotations
@@ -16,11 +17,13 @@ import time
 
 from agents.args import AgentArgs, parse_agent_args
 from agents.bus import START_TIMEOUT_S, Bus
-from agents.lifecycle import run_agent
+from agents.lifecycle import receive_bound, run_agent
 from agents.progress import report_progress
 from agents.timing import StageTimer, write_timing
+from v2vsim.comm.codec import RejectedMessage
+from v2vsim.comm.control import MAX_CONTROL_BYTES
 from v2vsim.traffic import make_backend
-from v2vsim.world.serialize import static_to_bytes, world_to_bytes
+from v2vsim.world.serialize import MAX_STATIC_BYTES, MAX_WORLD_BYTES, static_to_bytes, world_to_bytes
 
 ACK_RESEND_S = 2.0  # an ego silent this long gets the worlds it has not acked again
 HANG_TIMEOUT_S = 120.0  # no ack for this long ends the run (exit 1, why on stderr); the ego waits 60 s for a CAV
@@ -32,16 +35,22 @@ def drive(args: AgentArgs, bus: Bus) -> int:
     egos = args.egos
     acks: dict[str, int] = {}
     ack_event = threading.Event()
+    published = [-1]  # the newest frame put on the bus (set before its world goes out)
 
     def on_ack(sender: str, payload: bytes) -> None:
         # The Bus admits acks only from ego processes (signed under comm.auth); the ego is the key's
         # sender, not what the payload claims, and an old (replayed) frame never moves an ack back.
+        # An ack for a frame not published yet cannot be an ego's: believed, one forged ack for frame
+        # 10**6 let the driver publish the whole run at once and end it. Refused ones are counted by
+        # the Bus (control_rejections, in timing/driver.json), never fatal.
         if sender not in egos:
             return
         try:
             frame = int(json.loads(payload)["frame"])
         except (ValueError, KeyError, TypeError):
-            return  # a malformed ack is ignored, never fatal
+            raise RejectedMessage("bad_header", "an ack without a frame") from None
+        if frame > published[0]:
+            raise RejectedMessage("out_of_window", f"ack for frame {frame}, the newest published is {published[0]}")
         acks[sender] = max(acks.get(sender, -1), frame)
         ack_event.set()
 
@@ -52,7 +61,9 @@ def drive(args: AgentArgs, bus: Bus) -> int:
         print(f"v2vsim-driver: every ego process is gone at frame {k}; stopping", file=sys.stderr, flush=True)
         return True
 
-    recent: dict[int, bytes] = {}  # the worlds an ego may still wait for (frames past the oldest ack)
+    # lockstep: the worlds an ego may still wait for (frames past the oldest ack: at most transport.pipeline + 1);
+    # realtime has no acks and resends nothing, so it keeps none
+    recent: dict[int, bytes] = {}
 
     def wait_acks(k: int) -> None:
         """Until every live ego acked frame k. An ego that has not for ACK_RESEND_S is sent the worlds it has
@@ -78,7 +89,10 @@ def drive(args: AgentArgs, bus: Bus) -> int:
     backend = make_backend(sc)
     try:
         world = backend.reset()
-        bus.serve("static", static_to_bytes(backend.static))
+        static = static_to_bytes(backend.static)
+        if len(static) > MAX_STATIC_BYTES:
+            raise ValueError(f"the static map is {len(static)} bytes; agents accept at most {MAX_STATIC_BYTES}")
+        bus.serve("static", static)
         bus.subscribe("ack", on_ack)
         bus.ready()
         expected = {f"cav.{c}" for c in args.cavs} | {f"ego.{e}" for e in egos}
@@ -94,8 +108,14 @@ def drive(args: AgentArgs, bus: Bus) -> int:
                 if k > 0:
                     world = backend.step()
             with timer.stage("comm"):
-                recent[k] = world_to_bytes(world)
-                bus.put("world", recent[k])
+                data = world_to_bytes(world)
+                if len(data) > MAX_WORLD_BYTES:  # every agent would refuse it and wait for a world forever
+                    raise ValueError(f"the world of frame {k} is {len(data)} bytes ({len(world.actors)} actors); "
+                                     f"agents accept at most {MAX_WORLD_BYTES}")
+                if sc.transport.clock != "realtime":
+                    recent[k] = data
+                published[0] = k
+                bus.put("world", data)
             timer.frame_done()
             with timer.stage("wait"):
                 if sc.transport.clock == "realtime":
@@ -109,13 +129,14 @@ def drive(args: AgentArgs, bus: Bus) -> int:
         bus.put("done", json.dumps({"frames": frames}).encode())
     finally:
         backend.close()
-        write_timing(args.out, "driver", timer)
+        write_timing(args.out, "driver", timer, bus.control_rejections())
     return 0
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_agent_args("driver", argv)
-    return run_agent(args, "driver", "main", lambda bus: drive(args, bus))
+    return run_agent(args, "driver", "main", lambda bus: drive(args, bus),  # it takes acks, hellos and byes
+                     max_message_bytes=receive_bound(MAX_CONTROL_BYTES))
 
 
 if __name__ == "__main__":

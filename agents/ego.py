@@ -32,7 +32,7 @@ from agents.ego_collect import bytes_for, collect, control_rejections, reject_le
 from agents.ego_mailbox import Mailbox, Window, cav_died, notify, put_world, set_done, wait_messages, wait_world
 from agents.ego_replay import ReplayBus
 from agents.ego_scoring import AfterFusion, FusedFrame, signals_deferred
-from agents.lifecycle import Stop, run_agent
+from agents.lifecycle import Stop, receive_bound, run_agent
 from agents.progress import report_progress
 from agents.timing import StageTimer
 from v2vsim.comm.control import DRIVER
@@ -61,7 +61,7 @@ from v2vsim.recording.messages import MessageTape
 from v2vsim.recording.scan import max_scan_bytes
 from v2vsim.sensors.scene import MapAssets, build_map_assets
 from v2vsim.world.geometry import Pose
-from v2vsim.world.serialize import static_from_bytes, world_from_bytes
+from v2vsim.world.serialize import MAX_STATIC_BYTES, MAX_WORLD_BYTES, static_from_bytes, world_from_bytes
 from v2vsim.world.state import WorldState
 
 MAX_VIS_BYTES = 1 << 20  # the visible-ids side channel: a few hundred ids
@@ -77,9 +77,23 @@ def compensation_schemes(sc: Scenario, methods: list[str], extrapolations: dict[
     return out
 
 
-def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None) -> int:
+def largest_message(sc: Scenario, encoder: torch.nn.Module) -> int | None:
+    """The longest message the ego of `sc` accepts, whatever its kind (None: some kind has no bound): every
+    V2V kind's (the uncompressed map from its own CAV included), the side channels, a world, the static map.
+    Its zenoh session drops a longer message before reassembling it (agents.lifecycle.receive_bound)."""
+    c, f = encoder.out_channels, encoder.out_cells
+    specs = [*ego_wire_spec(sc, c, f, wire_ratio(sc)).items(), ("features", ego_wire_spec(sc, c, f, 1)["features"])]
+    sizes = [ks.max_message_bytes(kind) for kind, ks in specs]
+    if any(n is None for n in sizes):
+        return None
+    return max([*sizes, MAX_VIS_BYTES, max_scan_bytes(sc), MAX_WORLD_BYTES, MAX_STATIC_BYTES])  # type: ignore[list-item]
+
+
+def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder: torch.nn.Module | None = None
+             ) -> int:
     """The ego's whole run. `replay` (v2vsim evaluate): `bus` is a ReplayBus that feeds a recording's frames
-    straight into the mailbox, after the arrival checks they passed when recorded; everything else is the same."""
+    straight into the mailbox, after the arrival checks they passed when recorded; everything else is the same.
+    `encoder`: the CAVs' encoder, built already (main sizes its zenoh session by it)."""
     torch.set_num_threads(1)
     sc = args.scenario
     me = args.cav
@@ -88,7 +102,7 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None) -> int:
     key = run_signer(args)
     kinds = ["features"] + (["points"] if "early" in methods and lidar else []) + (
         ["outputs"] if "late" in methods else [])
-    encoder = build_agent_encoder(sc)
+    encoder = encoder if encoder is not None else build_agent_encoder(sc)
     precision = resolve_precision(sc.perception.precision)
     models = build_method_models(sc, encoder, runnable_methods(sc))
     # comm.compensation: each intermediate method whose zoo ships a trained extrapolation (never a random one)
@@ -114,15 +128,19 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None) -> int:
             return own_decoder.check_arrival("features", data, sender)  # type: ignore[union-attr]
         return decoder.check_arrival(kind, data, sender)
 
+    window = Window.for_scenario(sc)
     box = Mailbox({kind: decoder.max_bytes(kind) for kind in kinds} | {"vis": MAX_VIS_BYTES,
                                                                        "scan": max_scan_bytes(sc)}
                   | ({"own": own_decoder.max_bytes("features")} if own_decoder is not None else {}),
-                  check=check, window=Window.for_scenario(sc))
+                  check=check, window=window)
     if replay is not None:
         replay.attach(box)
     for kind in [*kinds, *side, *(["own"] if own_decoder is not None else [])]:
-        bus.subscribe(kind, lambda sender, data, kind=kind: box.put(kind, sender, data))
-    bus.subscribe("world", lambda sender, data: put_world(box, data))
+        # too long for its kind: refused from its length on zenoh's buffer, before a copy (case 5 of issue 45)
+        bus.subscribe(kind, lambda sender, data, kind=kind: box.put(kind, sender, data),
+                      max_bytes=box.limits.get(kind) or None,
+                      oversize=lambda sender, kind=kind: box.refused(kind, "size_mismatch"))
+    bus.subscribe("world", lambda sender, data: put_world(box, data))  # bounded like the messages (worlds.py)
     bus.subscribe("done", lambda sender, data: set_done(box))
     lost: dict[str, int] = {}
     bus.on_lost(lambda who: notify(box))
@@ -197,6 +215,8 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None) -> int:
                 status = f"ego {me} left the simulation at frame {k}"
                 break
             ego_poses[k] = ego_actor.pose
+            for f in [f for f in ego_poses if f < k - window.behind - 1]:  # older messages are refused
+                del ego_poses[f]
             near = cavs_in_range(world, me, sc.comm.range_m)
             present = [a.id for a in world.cavs if a.id in args.cavs]
             if not realtime:
@@ -305,7 +325,10 @@ def _after(k: int) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_agent_args("ego", argv)
-    return run_agent(args, "ego", args.cav, lambda bus: ego_loop(args, bus))
+    torch.set_num_threads(1)
+    encoder = build_agent_encoder(args.scenario)
+    return run_agent(args, "ego", args.cav, lambda bus: ego_loop(args, bus, encoder=encoder),
+                     max_message_bytes=receive_bound(largest_message(args.scenario, encoder)))
 
 
 if __name__ == "__main__":

@@ -60,9 +60,14 @@ def collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str], 
             scans[sender] = decode_scan(data, sender, args.scenario)
         except ValueError as e:
             print(f"v2vsim-ego: frame {k}: {e}; not recorded", file=sys.stderr)
+    # a message captured after the frames the window admits would wait in the channel model until the run ends
+    latest = None if box.window is None else now + (box.window.ahead + 1) / args.scenario.rate_hz
     for kind in kinds:
         for sender, data in raw[kind]:
             msg = decoder.receive(kind, data, sender, _stats_for(inboxes, kind), verified=box.check is not None)
+            if msg is not None and latest is not None and msg.capture_time > latest:
+                _count_rejected(inboxes, kind, "out_of_window")
+                msg = None
             if msg is None:
                 inboxes[kind].mark_rejected(sender)
                 continue

@@ -16,7 +16,8 @@ from collections import Counter, defaultdict
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from agents.bus import DONE_GRACE_S, DRIVER_GRACE_S, START_TIMEOUT_S, Bus
+from agents.bus import DRIVER_GRACE_S, START_TIMEOUT_S, Bus
+from agents.worlds import world_frame
 from v2vsim.comm.codec import RejectedMessage
 from v2vsim.comm.control import DRIVER
 from v2vsim.config import Scenario
@@ -67,10 +68,8 @@ class Mailbox:
         self.cond = threading.Condition()
         self.raw: dict[tuple[str, int], list[tuple[str, bytes]]] = defaultdict(list)  # (sender key, bytes)
         self.rejected: Counter[tuple[str, str]] = Counter()  # (kind, reason) decided on arrival
-        self.worlds: dict[int, bytes] = {}
+        self.worlds: dict[int, bytes] = {}  # within the window too (put_world)
         self.done = False
-        self.done_at = 0.0  # time.monotonic() of the first done
-        self.last_world = 0.0  # time.monotonic() of the latest world
         self.newest_world = -1
         self.collected = -1  # the latest frame taken out for fusion (ego_collect.collect)
         self.limits = dict(limits or {})
@@ -130,6 +129,10 @@ class Mailbox:
             for f in [f for f in self._held if f < self.collected - self.window.behind]:
                 del self._held[f]
 
+    def refused(self, kind: str, reason: str) -> None:
+        """Count a message of `kind` refused before `put` (too long to copy off the transport: agents/bus.py)."""
+        self._reject(kind, reason)
+
     def pending(self) -> int:
         """Messages held, for every kind and frame (a bound the flood test checks)."""
         with self.cond:
@@ -152,23 +155,34 @@ def _peek_frame(kind: str, data: bytes) -> int | None:
 
 
 def put_world(box: Mailbox, data: bytes) -> None:
-    try:
-        frame = int(json.loads(data)["frame"])
-    except (ValueError, KeyError, TypeError):
-        return
+    """Keep a world the ego will fuse, within the mailbox's window like V2V messages (agents/worlds.py says why):
+    RejectedMessage (the Bus counts it) for one that is not a world, too long, out of the window, or a second,
+    different world for a frame held. A world for a frame fused already (sent again) is dropped silently."""
+    frame = world_frame(data)
     with box.cond:
         if frame <= box.collected:  # fused already (a replay): nothing will wait for it
             return
+        held = box.worlds.get(frame)
+        if held is not None:
+            if held == data:
+                return
+            raise RejectedMessage("duplicate", f"a second, different world for frame {frame}")
+        w = box.window
+        if w is not None:
+            ref = max(box.collected, box.newest_world) if w.realtime else box.collected
+            if frame > ref + w.ahead:
+                raise RejectedMessage("out_of_window", f"world for frame {frame}, {ref + w.ahead} at most")
         box.worlds[frame] = data
         box.newest_world = max(box.newest_world, frame)
-        box.last_world = time.monotonic()
+        if w is not None and w.realtime:  # only the newest is ever fused: keep `ahead` of them
+            for old in sorted(box.worlds)[:-w.ahead]:
+                del box.worlds[old]
         box.cond.notify_all()
 
 
 def set_done(box: Mailbox) -> None:
     with box.cond:
-        if not box.done:
-            box.done, box.done_at = True, time.monotonic()
+        box.done = True
         box.cond.notify_all()
 
 
@@ -197,9 +211,11 @@ def wait_world(box: Mailbox, bus: Bus, k: int, realtime: bool) -> tuple[int, byt
                 return f, data
             now = time.monotonic()
             gone = bus.driver_gone()
-            # A verified done is the driver's; without comm.auth anyone could have sent it, so it is
-            # believed once the driver is gone too, or when no world came for DONE_GRACE_S since.
-            if box.done and (bus.authenticated or gone or now - max(box.done_at, box.last_world) > DONE_GRACE_S):
+            # A verified done is the driver's; without comm.auth anyone could have sent it, so it is believed
+            # once the driver is gone too. An honest driver says done only after every live ego acked the last
+            # frame, so a done that comes while this ego still waits for a world is from the future (the old
+            # rule, believed after DONE_GRACE_S without a world, let a forged one end a run waiting on a slow ego).
+            if box.done and (bus.authenticated or gone):
                 return "done"
             if gone:
                 gone_at = gone_at or now

@@ -2,7 +2,7 @@
 mailbox, one frame per ack, so that agents.ego.ego_loop runs unchanged with no driver, CAVs or zenoh.
 
 Frame k's world and every message collect() took for frame k when recorded go into the mailbox when the ego
-acks frame k-1 (frame 0: when it says ready), straight into its per-frame tables: they passed the arrival
+acks frame k-1 (frame 0: when it says ready), straight into its tables: they passed the arrival
 checks (signature, run, sender, window) when they were recorded, and the decode that follows skips the
 signature as it did then. Rejections decided on arrival are put back as counted. A CAV lost in the recorded
 run is lost again from the same frame; the run ends as the recorded one did (its frames, then done).
@@ -209,8 +209,8 @@ class ReplayBus:
         assert kind == "static"
         return self.recording.static
 
-    def subscribe(self, kind: str, callback: Callable[[str, bytes], None]) -> None:
-        self._subs[kind] = callback
+    def subscribe(self, kind: str, callback: Callable[[str, bytes], None], **_bounds: object) -> None:
+        self._subs[kind] = callback  # a recording's messages passed the length bounds when recorded
 
     def on_lost(self, callback: Callable[[str], None]) -> None:
         pass
@@ -267,7 +267,10 @@ class ReplayBus:
                     continue
                 box.raw[(kind, k)].extend(table)
             box.rejected.update(frame.rejected)
-        self._subs["world"]("main", frame.world)
+            # straight in too, past the window: a realtime recording may skip more frames than it holds
+            box.worlds[k] = frame.world
+            box.newest_world = max(box.newest_world, k)
+            box.cond.notify_all()
 
 
 def read_only(value: T) -> T:

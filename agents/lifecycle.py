@@ -11,7 +11,7 @@ from collections.abc import Callable
 
 from agents.args import AgentArgs, run_signer
 from agents.bus import Bus
-from v2vsim.comm.control import ControlPolicy
+from v2vsim.comm.control import ENVELOPE_BYTES, ControlPolicy
 from v2vsim.comm.transport import TransportError, open_session
 
 
@@ -23,8 +23,21 @@ def _raise_stop(signum: int, frame: object) -> None:
     raise Stop(signum)
 
 
-def run_agent(args: AgentArgs, role: str, ident: str, body: Callable[[Bus], int]) -> int:
-    """Open the bus, run `body`, and turn every expected failure into a one-line error."""
+ZENOH_SLACK_BYTES = 64 << 10  # what zenoh adds around a payload (key expression, headers)
+
+
+def receive_bound(largest: int | None) -> int | None:
+    """The zenoh message bound of a process whose longest accepted message is `largest` bytes (None: no bound):
+    zenoh drops a message far longer before reassembling it, so a 64 MiB message for a process that takes at
+    most 16 MiB costs it no 64 MiB buffer (issue 45; zenoh 1.10 enforces it reliably only over ~16 MiB, and the
+    Bus checks each kind's own bound, before copying, for the rest)."""
+    return None if largest is None else max(1 << 20, largest + ENVELOPE_BYTES + ZENOH_SLACK_BYTES)
+
+
+def run_agent(args: AgentArgs, role: str, ident: str, body: Callable[[Bus], int],
+              max_message_bytes: int | None = None) -> int:
+    """Open the bus, run `body`, and turn every expected failure into a one-line error. max_message_bytes: the
+    zenoh bound of the process's session (receive_bound)."""
     signal.signal(signal.SIGTERM, _raise_stop)
     signal.signal(signal.SIGINT, _raise_stop)
     tcfg = args.scenario.transport
@@ -33,7 +46,7 @@ def run_agent(args: AgentArgs, role: str, ident: str, body: Callable[[Bus], int]
     else:
         tcfg, peers = dataclasses.replace(tcfg, listen=(args.listen,) if args.listen else ()), args.peers
     try:
-        session = open_session(tcfg, peers=peers)
+        session = open_session(tcfg, peers=peers, max_message_bytes=max_message_bytes)
     except TransportError as e:
         print(f"v2vsim-{role}: error: {e}", file=sys.stderr)
         return 2

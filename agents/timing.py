@@ -11,7 +11,7 @@ import json
 import resource
 import time
 from collections import defaultdict
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -55,10 +55,19 @@ def peak_rss_mib() -> float:
     return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)  # Linux reports KiB
 
 
-def write_timing(out: str, process: str, timer: StageTimer) -> None:
-    """<out>/timing/<process>.json (nothing when the process has no output directory, e.g. a remote CAV)."""
+def write_timing(out: str, process: str, timer: StageTimer,
+                 control_rejections: Mapping[tuple[str, str], int] | None = None) -> None:
+    """<out>/timing/<process>.json (nothing when the process has no output directory, e.g. a remote CAV); with
+    the control messages this process refused ({kind: {reason: n}}, its Bus.control_rejections): the ego's are
+    in metrics.json, the driver's and the CAVs' (a forged ack, a world from the future) only here."""
     if not out:
         return
+    doc = timer.to_json()
+    if control_rejections is not None:
+        by_kind: dict[str, dict[str, int]] = {}
+        for (kind, reason), n in sorted(control_rejections.items()):
+            by_kind.setdefault(kind, {})[reason] = n
+        doc["control_rejections"] = by_kind
     d = Path(out) / "timing"
     d.mkdir(parents=True, exist_ok=True)
-    (d / f"{process}.json").write_text(json.dumps(timer.to_json(), indent=1))
+    (d / f"{process}.json").write_text(json.dumps(doc, indent=1))

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 from v2vsim.comm.codec import SIG_LEN, TAG_LEN, RejectedMessage, Signer
 from v2vsim.comm.identity import Identity
+from v2vsim.world.serialize import MAX_STATIC_BYTES, MAX_WORLD_BYTES
 
 CONTROL_KINDS = frozenset({"world", "done", "ack", "start", "static", "vis", "scan", "bye", "hello"})
 DRIVER = "driver.main"
@@ -43,6 +44,18 @@ CTRL_VERSION_IDENTITY = 2  # the sender's Ed25519 signature
 MAX_SEQ_STEP = 1 << 16  # a sender sends far fewer control messages of one kind between two a receiver hears
 _HEAD = struct.Struct("<4sBQB")
 _DOMAIN = b"v2vsim control v1\0"  # keeps these tags apart from the data messages' tags
+ENVELOPE_BYTES = _HEAD.size + 0xFF + max(SIG_LEN, TAG_LEN)
+"""The most a signed envelope adds to a control payload (header, a 255-byte name, the tag)."""
+MAX_CONTROL_BYTES = 4096
+"""done, ack, start, hello, bye: a few dozen bytes of JSON (a bye's reason is cut at 200 characters)."""
+
+
+def max_payload_bytes(kind: str) -> int | None:
+    """The longest payload of a control kind a receiver accepts (None: the receiver's own bound, e.g. vis and scan,
+    which depend on the scenario). Checked on arrival before the message is copied off the transport."""
+    if kind in ("vis", "scan"):
+        return None
+    return {"world": MAX_WORLD_BYTES, "static": MAX_STATIC_BYTES}.get(kind, MAX_CONTROL_BYTES)
 
 
 def process_id(name: str) -> str:

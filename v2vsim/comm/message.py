@@ -112,8 +112,10 @@ REASONS = ("truncated", "bad_magic", "bad_version", "bad_header", "unknown_kind"
 """Stable rejection counter keys. missing_extra / unexpected_extra: the extras differ from the
 KindSpec; replayed: a control message (v2vsim.comm.control) or a V2V message (same sender, kind and
 frame) seen before; bad_indices: a "sparse" message's cells are not integers, one per payload row, in
-range, strictly increasing; out_of_window: a V2V message for a frame the run cannot have reached yet
-(agents/ego_mailbox.py); duplicate: a second, different message for a (sender, kind, frame) already held."""
+range, strictly increasing; out_of_window: a V2V message or a world for a frame the run cannot have reached
+yet (agents/ego_mailbox.py, agents/worlds.py), or an ack for a frame the driver has not published;
+duplicate: a second, different message (or world) for a (sender, kind, frame) already held; size_mismatch
+also a message longer than its kind's bound, refused before it is copied off the transport."""
 
 
 class RejectedMessage(Exception):

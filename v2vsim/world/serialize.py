@@ -14,6 +14,12 @@ import numpy as np
 from v2vsim.world.geometry import Pose
 from v2vsim.world.state import Actor, Building, StaticMap, WorldState
 
+MAX_WORLD_BYTES = 1 << 20
+"""The longest world message an agent accepts: ~150 bytes an actor, so some 7,000 actors (a scenario's worlds
+are a few KB). Agents refuse a longer one before copying or parsing it, and the driver refuses to publish one."""
+MAX_STATIC_BYTES = 16 << 20
+"""The longest static map (compressed .npz) an agent accepts: the shipped ones are under 25 KB."""
+
 
 def world_to_bytes(world: WorldState) -> bytes:
     doc = world.to_json()
