@@ -223,10 +223,13 @@ def test_without_auth_a_fake_ego_token_no_longer_hangs_the_run(tmp_path: Path, r
         assert run.finish(timeout=240) == 0, "".join(run.log)
         fake.undeclare()
     m = _metrics(out)
-    # unsigned, the token still costs the CAVs' first messages: they are lost after the ego's 60 s wait, and the
-    # run says so (issue 45) instead of "complete"; the default, signed run shrugs it off (below)
-    assert m["frames"] == frames and m["status"].startswith("degraded: "), m["status"]
-    assert m["trust"] == "off"
+    # unsigned, the token can cost the CAVs' first messages (sent before the real ego listened): then they are
+    # lost after the ego's 60 s wait, and the run says so (issue 45) instead of "complete". Whether it happens
+    # depends on who starts first; either way the status tells the truth. The default, signed run shrugs the
+    # token off (below).
+    assert m["frames"] == frames and m["trust"] == "off"
+    assert (m["status"] == "complete" and m["lost_agents"] == {}) or (
+        m["status"].startswith("degraded: ") and m["lost_agents"]), (m["status"], m["lost_agents"])
 
 
 def test_replays_and_near_future_copies_are_not_counted_as_fused_bytes(tmp_path: Path, router: str) -> None:

@@ -176,6 +176,9 @@ class FakeBus:
     def is_alive(self, who: str) -> bool:
         return who != "ego.cav0" or self.ego_alive
 
+    def control_rejections(self) -> dict[tuple[str, str], int]:
+        return {}
+
     def put(self, kind: str, data: bytes) -> int:
         self.kinds.append(kind)
         if kind == "world":
