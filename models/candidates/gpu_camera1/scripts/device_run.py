@@ -20,8 +20,19 @@ from concurrent.futures import ProcessPoolExecutor, wait
 from multiprocessing import get_context
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).parent))
-from sense_all import groups  # noqa: E402
+
+def _sibling(name: str):
+    """A script beside this one, loaded by its path: these scripts are files run on the device machine, not a
+    package, and an `import sense_all` reads as a third-party dependency (as run: `sys.path` + `import`)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name(f"{name}.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+groups = _sibling("sense_all").groups
 
 E = os.environ
 T0 = float(E.get("T0", time.time()))
