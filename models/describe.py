@@ -20,33 +20,6 @@ def _params(m: nn.Module) -> int:
     return sum(p.numel() for p in m.parameters())
 
 
-def _hook_shapes(module: nn.Module, names: list[str], run: Callable[[], object]) -> list[tuple[str, tuple]]:
-    """Run `run` with forward hooks on the named submodules; (name, output shape) in `names` order."""
-    import torch
-
-    shapes: dict[str, tuple] = {}
-    subs = dict(module.named_modules())
-
-    def make(n: str) -> Callable[..., None]:
-        def hook(_m: nn.Module, _i: object, out: object) -> None:
-            t = out[0] if isinstance(out, (tuple, list)) else out
-            if isinstance(out, dict):
-                t = next(iter(out.values()))
-            if isinstance(t, torch.Tensor):
-                shapes[n] = tuple(t.shape)
-
-        return hook
-
-    handles = [subs[n].register_forward_hook(make(n)) for n in names if n in subs]
-    try:
-        with torch.no_grad():
-            run()
-    finally:
-        for h in handles:
-            h.remove()
-    return [(n, shapes[n]) for n in names if n in shapes]
-
-
 def _row(name: str, kind: str, module: nn.Module, stages: list[tuple[str, tuple]], output: tuple | None,
          **extra: Any) -> dict:
     return {
@@ -89,6 +62,7 @@ def describe_models(preset: str, agents: int = 4) -> list[dict]:
     import torch
 
     from models.presets import get_preset
+    from models.resnet import record_stage_shapes
 
     p = get_preset(preset)
     rows: list[dict] = []
@@ -107,8 +81,9 @@ def describe_models(preset: str, agents: int = 4) -> list[dict]:
                          "origin": reg.source(), "error": str(e)})
             continue
         names = list(getattr(fus, "stage_names", [n for n, _ in fus.named_children()]))
+
         def run(fus: nn.Module = fus, names: list[str] = names) -> list[tuple[str, tuple]]:
-            return _hook_shapes(fus, names, lambda: fus(feats, valid))
+            return record_stage_shapes(fus, names, lambda: fus(feats, valid), skip_missing=True)
 
         stages, out = _with_output(fus, run)
         rows.append(_row(name, "fusion", fus, stages, out, agents=agents, origin=reg.source()))
@@ -121,7 +96,7 @@ def describe_models(preset: str, agents: int = 4) -> list[dict]:
         if heads.detection is not None:
             names += ["detection.cls", "detection.reg"]
         x = torch.randn(1, p.channels, heads.in_cells, heads.in_cells)  # the fused map of that modality's grid
-        stages = _hook_shapes(heads, names, lambda heads=heads, x=x: heads(x))
+        stages = record_stage_shapes(heads, names, lambda heads=heads, x=x: heads(x), skip_missing=True)
         rows.append(_row(f"heads-{modality}", "decoder+heads", heads, stages, dict(stages)["dynamic"]))
     for name in BRACKETS:  # the brackets: no module of their own
         rows.append({"name": name, "kind": "bracket", "params": 0, "stages": [], "output": None, "origin": BUILTIN})

@@ -101,22 +101,27 @@ def resnet34(width: float = 1.0, blocks: Sequence[int] = RESNET34_BLOCKS) -> Res
 
 
 def record_stage_shapes(
-    module: nn.Module, stage_names: Sequence[str], run: Callable[[], object]
+    module: nn.Module, stage_names: Sequence[str], run: Callable[[], object], skip_missing: bool = False
 ) -> list[tuple[str, tuple[int, ...]]]:
     """Run ``run()`` with forward hooks on the named submodules; return (name, output shape) in order.
 
     A submodule called several times (e.g. per camera) reports its last output. Tensor outputs only;
-    for tuple/list outputs the first tensor is reported.
+    for tuple/list outputs the first tensor is reported, for dict outputs the first value. A name that is
+    no submodule is a KeyError, or left out with ``skip_missing`` (`v2vsim models` on a plugin's module).
     """
     shapes: dict[str, tuple[int, ...]] = {}
     handles = []
     subs = dict(module.named_modules())
     for name in stage_names:
         if name not in subs:
+            if skip_missing:
+                continue
             raise KeyError(f"no submodule named {name!r}")
 
         def hook(_m: nn.Module, _inp: object, out: object, name: str = name) -> None:
             t = out[0] if isinstance(out, (tuple, list)) else out
+            if isinstance(out, dict):
+                t = next(iter(out.values()))
             if isinstance(t, Tensor):
                 shapes[name] = tuple(t.shape)
 
