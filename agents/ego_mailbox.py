@@ -17,7 +17,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from agents.bus import DRIVER_GRACE_S, START_TIMEOUT_S, Bus
-from agents.worlds import world_frame
+from agents.worlds import admit_world, world_frame
 from v2vsim.comm.codec import RejectedMessage
 from v2vsim.comm.control import DRIVER
 from v2vsim.config import Scenario
@@ -159,25 +159,12 @@ def put_world(box: Mailbox, data: bytes) -> None:
     RejectedMessage (the Bus counts it) for one that is not a world, too long, out of the window, or a second,
     different world for a frame held. A world for a frame fused already (sent again) is dropped silently."""
     frame = world_frame(data)
+    w = box.window
     with box.cond:
-        if frame <= box.collected:  # fused already (a replay): nothing will wait for it
-            return
-        held = box.worlds.get(frame)
-        if held is not None:
-            if held == data:
-                return
-            raise RejectedMessage("duplicate", f"a second, different world for frame {frame}")
-        w = box.window
-        if w is not None:
-            ref = max(box.collected, box.newest_world) if w.realtime else box.collected
-            if frame > ref + w.ahead:
-                raise RejectedMessage("out_of_window", f"world for frame {frame}, {ref + w.ahead} at most")
-        box.worlds[frame] = data
-        box.newest_world = max(box.newest_world, frame)
-        if w is not None and w.realtime:  # only the newest is ever fused: keep `ahead` of them
-            for old in sorted(box.worlds)[:-w.ahead]:
-                del box.worlds[old]
-        box.cond.notify_all()
+        if admit_world(box.worlds, frame, data, box.collected, box.newest_world, None if w is None else w.ahead,
+                       w is not None and w.realtime):
+            box.newest_world = max(box.newest_world, frame)
+            box.cond.notify_all()
 
 
 def set_done(box: Mailbox) -> None:

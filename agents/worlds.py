@@ -34,6 +34,31 @@ def world_frame(data: bytes) -> int:
     return frame
 
 
+def admit_world(held: dict[int, bytes], frame: int, data: bytes, taken: int, newest: int, ahead: int | None,
+                realtime: bool) -> bool:
+    """The one rule for holding a world (the CAV's WorldQueue and the ego's mailbox, each under its own lock):
+    store `data` for `frame` in `held` and return True, or return False for one taken already (frame <= `taken`)
+    or held already with the same bytes, or raise RejectedMessage for a second, different world of a frame held
+    or one more than `ahead` frames past `taken` (realtime: past max(taken, newest)); `ahead` None: no window.
+    Realtime keeps only the `ahead` newest, the only ones ever taken."""
+    if frame <= taken:
+        return False  # sent again for an ego that missed it (agents/driver.py): had it
+    same = held.get(frame)
+    if same is not None:
+        if same == data:
+            return False
+        raise RejectedMessage("duplicate", f"a second, different world for frame {frame}")
+    if ahead is not None:
+        ref = max(taken, newest) if realtime else taken
+        if frame > ref + ahead:
+            raise RejectedMessage("out_of_window", f"world for frame {frame}, {ref + ahead} at most")
+    held[frame] = data
+    if realtime and ahead is not None:
+        for old in sorted(held)[:-ahead]:
+            del held[old]
+    return True
+
+
 def world_window(sc: Scenario) -> int:
     """How many frames past the last one taken a world may be for (see the module docstring): the same
     window the ego keeps V2V messages in (agents.ego_mailbox.Window.ahead)."""
@@ -56,22 +81,9 @@ class WorldQueue:
     def put(self, data: bytes) -> None:
         frame = world_frame(data)
         with self._cond:
-            if frame <= self._taken:
-                return  # sent again for an ego that missed it (agents/driver.py): had it
-            held = self._held.get(frame)
-            if held is not None:
-                if held == data:
-                    return
-                raise RejectedMessage("duplicate", f"a second, different world for frame {frame}")
-            ref = max(self._taken, self._newest) if self.realtime else self._taken
-            if frame > ref + self.ahead:
-                raise RejectedMessage("out_of_window", f"world for frame {frame}, {ref + self.ahead} at most")
-            self._held[frame] = data
-            self._newest = max(self._newest, frame)
-            if self.realtime:  # only the newest is ever taken: keep `ahead` of them
-                for old in sorted(self._held)[:-self.ahead]:
-                    del self._held[old]
-            self._cond.notify_all()
+            if admit_world(self._held, frame, data, self._taken, self._newest, self.ahead, self.realtime):
+                self._newest = max(self._newest, frame)
+                self._cond.notify_all()
 
     def take(self, timeout: float) -> bytes | None:
         """The next world (lockstep: the lowest frame held; realtime: the newest, dropping the older ones), or
