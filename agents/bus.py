@@ -85,12 +85,13 @@ class Bus:
         self._hello_at: dict[str, float] = {}  # process name -> time.monotonic() of its latest signed hello
         self._silent: set[str] = set()  # proven processes whose hellos stopped (gone, token or not)
         self._closing = threading.Event()
+        self._threads: list[threading.Thread] = []  # joined by close(): see there
         self._keep.append(session.liveliness().declare_subscriber(
             f"v2vsim/{run_id}/alive/*", self._on_liveliness, history=True))
         self._subscribe("bye", self._on_bye)
         if key is not None:
             self._subscribe("hello", self._on_hello)
-            threading.Thread(target=self._watch_silence, name="bus-silence", daemon=True).start()
+            self._start(self._watch_silence, "bus-silence")
 
     @property
     def authenticated(self) -> bool:
@@ -102,7 +103,12 @@ class Bus:
         comm.auth it also says a signed hello now and every HEARTBEAT_S until the bus closes."""
         self._keep.append(self.session.liveliness().declare_token(message_key(self.run_id, "alive", self.name)))
         if self.key is not None:
-            threading.Thread(target=self._heartbeat, name="bus-hello", daemon=True).start()
+            self._start(self._heartbeat, "bus-hello")
+
+    def _start(self, target: Callable[[], None], name: str) -> None:
+        thread = threading.Thread(target=target, name=name, daemon=True)
+        self._threads.append(thread)
+        thread.start()
 
     def _heartbeat(self) -> None:
         while not self._closing.is_set():
@@ -352,11 +358,23 @@ class Bus:
         raise TimeoutError(f"no answer on {key} within {timeout_s:g} s")
 
     def close(self) -> None:
+        """Stop the bus's threads, undeclare everything and close the session; return once the threads ended.
+
+        A thread still inside a zenoh call when the interpreter finalises is ended by pthread_exit on its way
+        back to the GIL, and that forced unwind through zenoh's Rust frames aborts the process after its work
+        is done ("FATAL: exception not rethrown", SIGABRT). A put can block for a while (congestion control
+        BLOCK towards a peer that was just killed), so a thread that does not end at once is joined again after
+        the session closed, which makes its put return."""
         self._closing.set()
-        for pub in self._pubs.values():
-            pub.undeclare()
-        for ent in self._keep:
+        for thread in self._threads:
+            thread.join(timeout=1.0)  # each wakes at once on _closing unless it is inside a put
+        for ent in [*self._pubs.values(), *self._keep]:
             undeclare = getattr(ent, "undeclare", None)
             if undeclare is not None:
-                undeclare()
+                try:
+                    undeclare()
+                except RuntimeError:  # "Already borrowed": a thread is still putting on it; close() ends that
+                    pass
         self.session.close()
+        for thread in self._threads:
+            thread.join(timeout=10.0)
