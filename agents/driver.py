@@ -14,6 +14,7 @@ import json
 import sys
 import threading
 import time
+from pathlib import Path
 
 from agents.args import AgentArgs, parse_agent_args
 from agents.bus import START_TIMEOUT_S, Bus
@@ -22,6 +23,7 @@ from agents.progress import report_progress
 from agents.timing import StageTimer, write_timing
 from v2vsim.comm.codec import RejectedMessage
 from v2vsim.comm.control import MAX_CONTROL_BYTES
+from v2vsim.control.measures import ssm_conflicts
 from v2vsim.traffic import make_backend
 from v2vsim.world.serialize import MAX_STATIC_BYTES, MAX_WORLD_BYTES, static_to_bytes, world_to_bytes
 
@@ -36,6 +38,11 @@ def drive(args: AgentArgs, bus: Bus) -> int:
     acks: dict[str, int] = {}
     ack_event = threading.Event()
     published = [-1]  # the newest frame put on the bus (set before its world goes out)
+    # closed loop: ego -> frame -> the speed its planner commanded on that frame's perception (sent with its ack)
+    closed_loop = sc.control is not None
+    plans: dict[str, dict[int, float]] = {}
+    plans_lock = threading.Lock()
+    released: set[str] = set()
 
     def on_ack(sender: str, payload: bytes) -> None:
         # The Bus admits acks only from ego processes (signed under comm.auth); the ego is the key's
@@ -51,6 +58,16 @@ def drive(args: AgentArgs, bus: Bus) -> int:
             raise RejectedMessage("bad_header", "an ack without a frame") from None
         if frame > published[0]:
             raise RejectedMessage("out_of_window", f"ack for frame {frame}, the newest published is {published[0]}")
+        command = json.loads(payload).get("command")
+        if command is not None and closed_loop:
+            try:
+                speed = float(command["speed"])
+            except (KeyError, TypeError, ValueError):
+                raise RejectedMessage("bad_header", "a command without a speed") from None
+            if not 0.0 <= speed < 1000.0:  # NaN fails this too
+                raise RejectedMessage("bad_header", f"a commanded speed of {speed} m/s")
+            with plans_lock:  # the ego plans its own vehicle, and only that one
+                plans.setdefault(sender, {})[frame] = speed
         acks[sender] = max(acks.get(sender, -1), frame)
         ack_event.set()
 
@@ -85,8 +102,33 @@ def drive(args: AgentArgs, bus: Bus) -> int:
         for f in [f for f in recent if f <= min((acks.get(e, -1) for e in egos), default=k)]:
             del recent[f]
 
+    def actuate(k: int) -> None:
+        """Before the step that makes frame k: each driven vehicle's plan of frame k - 1 - actuation delay
+        (lockstep: its ack is in, since the driver waited for frame k - 1 - pipeline); realtime: the newest plan
+        that has arrived. A vehicle whose ego is gone goes back to SUMO's driver."""
+        due = k - 1 - sc.actuation_delay_frames
+        speeds = {}
+        with plans_lock:
+            for e in egos:
+                mine = plans.get(e, {})
+                if sc.transport.clock == "realtime":
+                    if mine:
+                        speeds[e] = mine[max(mine)]
+                        mine.clear()
+                elif due in mine:
+                    speeds[e] = mine.pop(due)
+                    for old in [f for f in mine if f < due]:
+                        del mine[old]
+        for e in egos:
+            if e not in released and bus.was_alive(f"ego.{e}") and not bus.is_alive(f"ego.{e}"):
+                backend.release(e)  # type: ignore[attr-defined]
+                released.add(e)
+                speeds.pop(e, None)
+        backend.command(speeds)  # type: ignore[attr-defined]
+
     timer = StageTimer()
-    backend = make_backend(sc)
+    ssm_file = str(Path(args.out) / "ssm.xml") if closed_loop and args.out else None
+    backend = make_backend(sc, ssm_file=ssm_file)
     try:
         world = backend.reset()
         static = static_to_bytes(backend.static)
@@ -106,6 +148,8 @@ def drive(args: AgentArgs, bus: Bus) -> int:
                 return 1
             with timer.stage("stepping"):
                 if k > 0:
+                    if closed_loop:
+                        actuate(k)
                     world = backend.step()
             with timer.stage("comm"):
                 data = world_to_bytes(world)
@@ -126,7 +170,11 @@ def drive(args: AgentArgs, bus: Bus) -> int:
             report_progress("driver", k + 1, frames)
         if sc.transport.clock != "realtime":
             wait_acks(frames - 1)  # CAVs end on `done`: not before the egos have everything they need
-        bus.put("done", json.dumps({"frames": frames}).encode())
+        done: dict = {"frames": frames}
+        if closed_loop:  # SUMO writes its SSM log as it closes: its conflicts go to the egos with the done
+            backend.close()
+            done["ssm_conflicts"] = ssm_conflicts(Path(ssm_file) if ssm_file else None)
+        bus.put("done", json.dumps(done).encode())
     finally:
         backend.close()
         write_timing(args.out, "driver", timer, bus.control_rejections())

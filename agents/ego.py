@@ -40,6 +40,8 @@ from v2vsim.comm.inbox import Inbox
 from v2vsim.comm.stats import CommStats
 from v2vsim.comm.wire_spec import EgoDecoder, ego_wire_spec
 from v2vsim.config import Scenario
+from v2vsim.control.measures import driving_block, vehicle_measures
+from v2vsim.control.pilot import Pilot
 from v2vsim.evaluation.fuse_and_score import box_iou, predict_all
 from v2vsim.evaluation.gt import bev_ground_truth, gt_boxes
 from v2vsim.evaluation.metrics import ApAccumulator, MethodScore, cavs_in_range
@@ -87,6 +89,31 @@ def largest_message(sc: Scenario, encoder: torch.nn.Module) -> int | None:
     if any(n is None for n in sizes):
         return None
     return max([*sizes, MAX_VIS_BYTES, max_scan_bytes(sc), MAX_WORLD_BYTES, MAX_STATIC_BYTES])  # type: ignore[list-item]
+
+
+DONE_WAIT_S = 10.0  # closed loop: how long the ego waits for the driver's done, which carries SUMO's SSM log
+
+
+def driving_summary(sc: Scenario, me: str, pilot: Pilot, box: Mailbox, done_doc: dict, replayed: bool) -> dict:
+    """metrics.json `driving` of this ego's vehicle. SUMO writes its SSM log when the simulation closes, after the
+    last frame: the driver counts its conflicts and says them with its done, which the ego waits for briefly."""
+    assert sc.control is not None
+    deadline = time.monotonic() + (0.0 if replayed else DONE_WAIT_S)
+    with box.cond:
+        while not box.done and time.monotonic() < deadline:
+            box.cond.wait(0.1)
+    conflicts = done_doc.get("ssm_conflicts")
+    count = conflicts.get(me, 0) if isinstance(conflicts, dict) else None
+    c = sc.control
+    header = {"method": c.method, "planner": c.planner, "driven": [me],
+              "actuation_delay_frames": sc.actuation_delay_frames,
+              "actuation_delay_ms": round(1000.0 * sc.actuation_delay_frames * sc.dt, 3),
+              "background_ignore_junction_foes": c.background_ignore_junction_foes,
+              "ssm_thresholds": {"ttc_s": c.ssm.ttc_s, "drac_mps2": c.ssm.drac_mps2, "pet_s": c.ssm.pet_s,
+                                 "range_m": c.ssm.range_m},
+              "hard_brake_mps2": c.hard_brake_mps2, "near_miss_gap_m": c.near_miss_gap_m}
+    per = vehicle_measures(pilot.frames, sc.dt, c.hard_brake_mps2, c.near_miss_gap_m, count)
+    return driving_block({me: per}, header)
 
 
 def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder: torch.nn.Module | None = None
@@ -141,7 +168,17 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
                       max_bytes=box.limits.get(kind) or None,
                       oversize=lambda sender, kind=kind: box.refused(kind, "size_mismatch"))
     bus.subscribe("world", lambda sender, data: put_world(box, data))  # bounded like the messages (worlds.py)
-    bus.subscribe("done", lambda sender, data: set_done(box))
+    done_doc: dict = {}  # what the driver said with its done (closed loop: SUMO's SSM conflicts per vehicle)
+
+    def on_done(sender: str, data: bytes) -> None:
+        try:
+            doc = json.loads(data)
+            done_doc.update(doc if isinstance(doc, dict) else {})
+        except ValueError:
+            pass
+        set_done(box)
+
+    bus.subscribe("done", on_done)
     lost: dict[str, int] = {}
     bus.on_lost(lambda who: notify(box))
 
@@ -155,6 +192,12 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
         from v2vsim.recording.recorder import Recorder
 
         recorder = Recorder(out_dir / "recording.rrd", sc, list(models), list(args.cavs), me, static)
+    pilot = None
+    if sc.control is not None:  # closed loop: this ego's vehicle plans on control.method's output
+        if sc.control.method != "oracle" and sc.control.method not in models:
+            raise ValueError(f"control.method {sc.control.method!r} cannot run in this run (runnable: "
+                             f"{', '.join(models)})")
+        pilot = Pilot(sc, me)
     checkpoints = method_checkpoints(sc, tuple(models))
     summary = RunSummary(scenario=sc, ego=me, methods=list(models),
                          untrained=all(v is None for v in checkpoints.values()), checkpoints=checkpoints,
@@ -255,14 +298,21 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
             sent = {m: bytes_for(m, inboxes) for m in preds}
             for ib in inboxes.values():
                 ib.take_bytes()
+            ack: dict = {"ego": me, "frame": k}
+            drive = None
+            if pilot is not None:
+                with timer.stage("planning"):
+                    drive = pilot.step(world, preds.get(sc.control.method))  # type: ignore[union-attr]
+                if drive is not None:
+                    ack["command"] = {"speed": round(drive.plan.speed, 4)}
             # Scoring and recording run beside the next frame's fusion; frames stay in order.
-            after.submit(FusedFrame(k, world, gt, boxes_gt, preds, inp, sent, links, scans))
+            after.submit(FusedFrame(k, world, gt, boxes_gt, preds, inp, sent, links, scans, drive))
             frames_done += 1
             summary.neighbours.append(near)
             timer.frame_done()
-            if not realtime:
+            if not realtime or pilot is not None:  # realtime: no ack awaited, but a plan must reach the driver
                 with timer.stage("comm"):
-                    bus.put("ack", json.dumps({"ego": me, "frame": k}).encode())
+                    bus.put("ack", json.dumps(ack).encode())
             report_progress(progress_name, k + 1, args.frames, delivered=stats.delivered, dropped=stats.dropped,
                             out_of_range=stats.out_of_range)
     except Stop:
@@ -292,6 +342,8 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
             summary.status = status
             summary.wall_s = time.monotonic() - t_start
             summary.lost_agents = dict(lost)
+            if pilot is not None:
+                summary.driving = driving_summary(sc, me, pilot, box, done_doc, replay is not None)
             by_kind = {kind: ib.stats for kind, ib in inboxes.items()}
             by_kind["control"] = control_rejections(bus, stats)
             write_outputs(out_dir, summary, scores, stats, by_kind, box_iou)

@@ -16,6 +16,7 @@ import numpy as np
 
 from agents.timing import StageTimer
 from v2vsim.comm.inbox import LinkEvent
+from v2vsim.control.pilot import PilotStep
 from v2vsim.evaluation.fuse_and_score import score_all
 from v2vsim.evaluation.metrics import MethodScore
 from v2vsim.perception.fuse import FusionInputs, Prediction
@@ -39,6 +40,7 @@ class FusedFrame:
     sent: dict[str, int]  # method -> bytes received for it this frame
     links: list[LinkEvent]  # what each sender's feature link did
     scans: dict[str, Scan]  # sender -> its scan (recording only)
+    drive: PilotStep | None = None  # closed loop: what the driven vehicle planned on this frame
 
 
 class AfterFusion:
@@ -88,6 +90,8 @@ class AfterFusion:
                         self.recorder.log_frame(job.k, job.world, job.gt, job.boxes_gt, job.preds, job.inp,
                                                 job.links, job.scans,
                                                 {m: self.scores[m].vehicle.last_iou for m in job.preds})
+                        if job.drive is not None:
+                            self.recorder.log_drive(job.k, job.world, job.drive)
             except BaseException as e:  # noqa: BLE001 - handed to the main thread as is
                 self.error = e
 

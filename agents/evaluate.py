@@ -192,6 +192,11 @@ def _prepare(rec: Recording, recorded: int, overrides: list[str], out: Path, fra
     sc = load_scenario(source, [*h["scenario"]["overrides"], *copies, *recorded_auth, *overrides])
     sc = dataclasses.replace(sc, output=dataclasses.replace(sc.output, record_messages=False))
     before, now = h["scenario"]["resolved"], resolved_keys(sc)
+    for doc, whose in ((before, "the recording was made closed loop"), (now, "--set makes it closed loop")):
+        if any(k.startswith("control.") or (k == "control" and v is not None) for k, v in doc.items()):
+            raise ConfigError(f"control: {whose}, and a closed-loop run cannot be replayed: its vehicles drove on "
+                              "what was perceived, so any change re-runs the world; run it live (v2vsim run or "
+                              "sweep)")
     defaults = resolved_keys(Scenario())  # a key added since the recording was made: it ran with the default
     for key in sorted(set(before) | set(now)):
         if key in ("output.record_messages",) or receiver_side(key):

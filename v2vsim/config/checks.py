@@ -42,6 +42,7 @@ def _check_cross_fields(sc: Scenario, loader: _Loader) -> None:
         loader.fail("output.record_messages", "true needs transport.clock lockstep: in realtime what the ego has "
                     "at a frame depends on wall-clock arrival order, which a replay cannot reproduce")
     _check_egos(sc, loader)
+    _check_control(sc, loader)
     _check_key_file(sc, loader)
     for name in ("listen", "connect"):
         for i, ep in enumerate(getattr(sc.transport, name)):
@@ -61,6 +62,28 @@ def _check_egos(sc: Scenario, loader: _Loader) -> None:
                         f"allowed: {allowed}")
         if ego in sc.cavs.ego[:i]:
             loader.fail(f"cavs.ego[{i}]", f"{ego!r} is listed twice; each ego once")
+
+
+def _check_control(sc: Scenario, loader: _Loader) -> None:
+    """A closed loop needs SUMO (libsumo drives the vehicle), a method the run decodes, and a delay the lockstep
+    pipeline can honour (the driver steps frame k + pipeline + 1 once the ego acked frame k)."""
+    c = sc.control
+    if c is None:
+        return
+    if sc.traffic.backend != "sumo":
+        loader.fail("control", f"needs traffic.backend 'sumo' (libsumo drives the vehicle); got "
+                    f"{sc.traffic.backend!r}: remove the control section for an open-loop run")
+    if c.method != "oracle" and c.method not in sc.perception.methods:
+        loader.fail("control.method", f"{c.method!r} is not among perception.methods "
+                    f"({', '.join(sc.perception.methods)}); allowed: oracle or one of those")
+    d = c.actuation_delay_frames
+    if d is not None and sc.transport.clock == "realtime":
+        loader.fail("control.actuation_delay_frames", "must be null under transport.clock realtime: the newest plan "
+                    "that arrived is applied at each step, so the delay is what the wall clock gives")
+    if d is not None and d < sc.transport.pipeline:
+        loader.fail("control.actuation_delay_frames", f"{d} is less than transport.pipeline ({sc.transport.pipeline}): "
+                    "the driver steps that far ahead of the ego's plans; allowed: an integer >= "
+                    f"{sc.transport.pipeline}, or null")
 
 
 def _check_key_file(sc: Scenario, loader: _Loader) -> None:

@@ -259,6 +259,55 @@ class OutputConfig:
 
 
 @dataclass(frozen=True)
+class IdmConfig:
+    """The planner's car-following law (IDM, Treiber, Hennecke & Helbing 2000) and its limits (v2vsim/control)."""
+
+    desired_speed_mps: float | None = _f(None, "> 0 (m/s) or null (the lane's speed limit)", _pos)
+    time_headway_s: float = _f(1.5, "> 0 (s)", _pos)
+    min_gap_m: float = _f(2.0, ">= 0 (m, standstill gap)", _nonneg)
+    max_accel_mps2: float = _f(2.0, "> 0 (m/s^2)", _pos)
+    comfort_decel_mps2: float = _f(3.0, "> 0 (m/s^2)", _pos)
+    max_decel_mps2: float = _f(8.0, "> 0 (m/s^2, the hardest braking any command asks)", _pos)
+    gap_acceptance_s: float = _f(5.0, "> 0 (s: a crossing vehicle arriving sooner blocks the junction)", _pos)
+
+
+@dataclass(frozen=True)
+class SsmConfig:
+    """SUMO's SSM device on each driven vehicle (docs/scenario.md "control"): thresholds below (above, for DRAC)
+    which an encounter counts as a conflict, and how far it looks. Defaults are SUMO's."""
+
+    ttc_s: float = _f(3.0, "> 0 (s)", _pos)
+    drac_mps2: float = _f(3.0, "> 0 (m/s^2)", _pos)
+    pet_s: float = _f(2.0, "> 0 (s)", _pos)
+    range_m: float = _f(50.0, "> 0 (m)", _pos)
+
+
+@dataclass(frozen=True)
+class ControlConfig:
+    """Closed loop (docs/run.md "The closed loop"): each ego's vehicle is driven by a planner that sees only what
+    `method` perceived; absent, the run is open loop exactly as before. The plan of frame k is applied at the
+    step after frame k + actuation_delay_frames (lockstep: at least transport.pipeline, the frames the driver may
+    run ahead of the ego)."""
+
+    method: str = _f("oracle", "'oracle' (ground truth), or one of perception.methods (e.g. none, late, cobevt)")
+    drive: Literal["egos"] = "egos"  # every ego's own vehicle; cavs.ego: all drives every CAV
+    planner: Literal["idm"] = "idm"
+    actuation_delay_frames: int | None = _f(None, "an integer >= transport.pipeline, or null (the least the "
+                                            "pipeline allows)", _nonneg)
+    idm: IdmConfig = field(default_factory=IdmConfig)
+    ssm: SsmConfig = field(default_factory=SsmConfig)
+    hard_brake_mps2: float = _f(4.0, "> 0 (m/s^2: a deceleration at least this hard is a hard-braking event)", _pos)
+    near_miss_gap_m: float = _f(1.0, ">= 0 (m: a closest footprint gap at most this, without contact, is a near "
+                                "miss)", _nonneg)
+    phantom_match_m: float = _f(3.0, "> 0 (m: braking for an obstacle with no vehicle this close to it is "
+                                "phantom braking)", _pos)
+    # jmIgnoreJunctionFoeProb of the background drivers: 0 = SUMO's attentive drivers, who brake for any vehicle
+    # already in the junction (so a driven vehicle that pulls out blindly is rarely hit); 1 = they keep their
+    # right of way. A modelling choice: the run's report states it.
+    background_ignore_junction_foes: float = _f(0.0, "0..1 (probability)", _prob)
+
+
+@dataclass(frozen=True)
 class Scenario:
     name: str = "scenario"
     seed: int = _f(0, f"0..{SEED_MAX}", lambda v: 0 <= v <= SEED_MAX)
@@ -273,6 +322,7 @@ class Scenario:
     perception: PerceptionConfig = field(default_factory=PerceptionConfig)
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
+    control: ControlConfig | None = None  # closed loop when present (docs/scenario.md "control")
     source: str = field(default="<defaults>", metadata={"internal": True})  # the YAML file
     overrides: tuple[str, ...] = field(default=(), metadata={"internal": True})  # --set, for child processes
 
@@ -283,6 +333,12 @@ class Scenario:
     @property
     def dt(self) -> float:
         return 1.0 / self.rate_hz
+
+    @property
+    def actuation_delay_frames(self) -> int:
+        """Frames between the capture a plan rests on and the step it is applied after (closed loop)."""
+        d = None if self.control is None else self.control.actuation_delay_frames
+        return self.transport.pipeline if d is None else d
 
     @property
     def fusion_deadline_s(self) -> float:

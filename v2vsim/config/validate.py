@@ -63,6 +63,8 @@ class _Loader:
                     return self.value(a, raw, key)
                 except ConfigError as e:
                     errors.append(e)
+            if len(errors) == 1 and dataclasses.is_dataclass(args[0]) and isinstance(raw, dict):
+                raise errors[0]  # a section (X | None) given as a mapping: its own error names the inner key
             self.fail(key, f"got {raw!r}; expected {_type_name(tp)}")
         if origin is tuple:
             if not isinstance(raw, (list, tuple)):

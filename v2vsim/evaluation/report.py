@@ -54,6 +54,7 @@ class RunSummary:
     grid_cells: int = 0  # the fusion grid F of the feature messages (F x F cells over bev.size_m)
     channels: int = 0  # C of the encoder's feature map
     wire_ratio: int = 1  # channel compression of the feature messages: C / r channels on the wire
+    driving: dict | None = None  # closed loop: metrics.json `driving` (v2vsim.control.measures.driving_block)
 
 
 def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: CommStats,
@@ -96,6 +97,8 @@ def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: Comm
         "pipeline": sc.transport.pipeline,
         "wall_s": round(summary.wall_s, 3),
         "timing": summary.timing,  # the ego's own split of a frame (ms), as `v2vsim bench run` prints it
+        # closed loop only (an open-loop run's metrics.json is as before)
+        **({"driving": summary.driving} if summary.driving is not None else {}),
     }
 
 
@@ -118,6 +121,39 @@ def vs_none(score: MethodScore, base: MethodScore | None) -> dict | None:
                                            "frames": d.frames}
     return {**out, "replicates": REPLICATES, "level": LEVEL,
             "method": "circular moving-block bootstrap over frames, percentile interval"}
+
+
+def driving_md(d: dict | None) -> list[str]:
+    """The report's closed-loop section: which method drove, and what came of it per driven vehicle."""
+    if d is None:
+        return []
+
+    def f(v: object, unit: str = "") -> str:
+        return "-" if v is None else (f"{v:.2f}{unit}" if isinstance(v, float) else f"{v}{unit}")
+
+    lines = ["", "## Driving (closed loop)", "",
+             f"The driven vehicle planned on **{d['method']}** ({d['planner']} planner); the other methods above were "
+             f"scored open loop on the same frames. A plan made on frame k's perception was applied after frame "
+             f"k + {d['actuation_delay_frames']} ({d['actuation_delay_ms']:g} ms later). Background drivers ignore a "
+             f"vehicle already in the junction with probability {d['background_ignore_junction_foes']:g}. SSM "
+             f"thresholds: TTC {d['ssm_thresholds']['ttc_s']:g} s, DRAC {d['ssm_thresholds']['drac_mps2']:g} m/s², "
+             f"PET {d['ssm_thresholds']['pet_s']:g} s.", "",
+             "| vehicle | collisions | near miss | min gap m | SSM min TTC s | SSM max DRAC | SSM min PET s "
+             "| PET s (trajectories) | hard braking | phantom braking | time to clear s | progress m |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for v, m in d["vehicles"].items():
+        if not m.get("frames"):
+            lines.append(f"| {v} | not driven |" + " |" * 10)
+            continue
+        ssm = m["ssm"]
+        lines.append(f"| {v} | {m['collisions']}" + (f" ({', '.join(m['collided_with'])}, first at frame "
+                                                      f"{m['first_collision_frame']})" if m["collisions"] else "")
+                     + f" | {'yes' if m['near_miss'] else 'no'} | {f(m['min_gap_m'])} | {f(ssm['min_ttc_s'])} | "
+                     f"{f(ssm['max_drac_mps2'])} | {f(ssm['min_pet_s'])} | {f(m['pet_s'])} | {m['hard_braking']} | "
+                     f"{m['phantom_braking']} | {f(m['time_to_clear_s'])} | {f(m['progress_m'])} |")
+    lines += ["", "Definitions: docs/scenario.md \"control\" (SUMO's SSM treats conflict areas as orthogonal lanes "
+              "and ignores lateral conflicts; the trajectory PET is measured beside it)."]
+    return lines
 
 
 def _fmt(v: float | int | None, pct: bool = False) -> str:
@@ -189,6 +225,7 @@ def report_md(doc: dict, summary: RunSummary) -> str:
                  if sort == "global" else
                  "within each frame, frames in order (`evaluation.ap_sort: per_frame`, OpenCOOD's default).")]
     lines += _vs_none_md(doc)
+    lines += driving_md(doc.get("driving"))
     c = doc["comm"]
     lat = c["latency_ms"]
     lines += ["", "## Communication (BEV feature messages, receiver side)", "",

@@ -7,6 +7,7 @@ the per-frame IoU and link plots, and a fusion log line. Entity paths:
     world/lidar/<cav>  world/links  world/bev_extent  world/ego_cameras/<name>
     bev/gt/{classes,boxes}   bev/<method>/{probability,errors,boxes}
     metrics/iou_vehicle/<method>   links/{latency_ms,age_ms,delivered}/<cav>   log/fusion
+    closed loop: world/drive/{path,obstacles,leader,events}   drive/{speed,planned_speed,min_gap_m}   log/drive
 
 Rows are batched into few large chunks (the batcher flushes every 30 s or 16 MB, not every
 few milliseconds), and things that never change are logged once as static.
@@ -22,6 +23,7 @@ import rerun as rr
 
 from v2vsim.comm.inbox import LinkEvent
 from v2vsim.config import Scenario
+from v2vsim.control.pilot import PilotStep
 from v2vsim.perception.fuse import FusionInputs, Prediction
 from v2vsim.recording import bev, world3d
 from v2vsim.recording.blueprint import default_blueprint
@@ -48,6 +50,7 @@ class Recorder:
         self.delivered: dict[str, list[int]] = {}  # sender -> [delivered, events]
         self.rec = rr.RecordingStream("v2vsim", recording_id=f"{sc.name}-{sc.seed}-{ego}", batcher_config=BATCHING)
         self.rec.save(path, default_blueprint=default_blueprint(methods, list(self.rig.names), static))
+        self._last_ttc: float | None = None  # closed loop: the SSM reading logged last (log_drive marks changes)
         self._log_static(static)
 
     def _log_static(self, static: StaticMap) -> None:
@@ -140,6 +143,44 @@ class Recorder:
             self.rec.log(f"links/delivered/{e.sender}", rr.Scalars(n[0] / n[1]))
             if e.outcome == "delivered" and e.latency_ms is not None:
                 self.rec.log(f"links/latency_ms/{e.sender}", rr.Scalars(e.latency_ms))
+
+    def log_drive(self, k: int, world: WorldState, step: PilotStep) -> None:
+        """The closed loop at frame k (after log_frame, same time): the route the planner followed, the tracks it
+        planned on (the one it braked for in red), its speed against the planned one, and every collision and SSM
+        reading marked in 3D and on the timeline."""
+        rec = self.rec
+        state = next((d for d in world.driven if d.id == self.ego), None)
+        if state is not None:
+            rec.log("world/drive/path", rr.LineStrips3D([np.c_[state.path, np.full(len(state.path), 0.1)]],
+                                                        colors=(250, 220, 40), radii=0.15))
+        tracks = step.tracks
+        rec.log("world/drive/obstacles", rr.Boxes3D(
+            centers=[(t.x, t.y, 0.8) for t in tracks], half_sizes=[(t.length / 2, t.width / 2, 0.8) for t in tracks],
+            rotation_axis_angles=[rr.RotationAxisAngle(axis=(0, 0, 1), radians=t.yaw) for t in tracks],
+            colors=[(255, 60, 60) if step.plan.obstacle is not None and t.id == step.plan.obstacle.id
+                    else (255, 170, 60) for t in tracks],
+            labels=[f"track {t.id} {np.hypot(t.vx, t.vy):.1f} m/s" for t in tracks]))
+        log = step.logged
+        rec.log("drive/speed", rr.Scalars(log.speed))
+        rec.log("drive/planned_speed", rr.Scalars(step.plan.speed))
+        if log.min_gap_m is not None:
+            rec.log("drive/min_gap_m", rr.Scalars(log.min_gap_m))
+        events = []
+        if log.collisions:
+            events.append(f"COLLISION with {', '.join(log.collisions)}")
+        if log.phantom:
+            events.append("phantom braking (no vehicle near the obstacle)")
+        ttc = log.ssm[0]
+        if ttc is not None and self._last_ttc != ttc:
+            events.append(f"SSM min TTC now {ttc:.2f} s")
+        self._last_ttc = ttc
+        rec.log("world/drive/events", rr.Points3D([(log.x, log.y, 3.0)] if events else np.zeros((0, 3)),
+                                                  colors=(255, 0, 0), radii=1.0, labels=events[:1] or None))
+        rec.log("log/drive", rr.TextLog(
+            f"frame {k}: {step.plan.reason}, planned {step.plan.speed:.1f} m/s (speed {log.speed:.1f})"
+            + (f" for track {step.plan.obstacle.id}" if step.plan.obstacle is not None else "")
+            + (" | " + "; ".join(events) if events else ""),
+            level=rr.TextLogLevel.WARN if log.collisions or log.phantom else rr.TextLogLevel.INFO))
 
     def close(self) -> None:
         self.rec.flush()

@@ -68,6 +68,8 @@ def effective_config(scenario: Path, overrides: Sequence[str]) -> dict:
     match, however the overrides were spelled or ordered."""
     sc = load_scenario(scenario, overrides)
     doc = {k: v for k, v in dataclasses.asdict(sc).items() if k not in ("source", "overrides")}
+    if doc.get("control") is None:  # open loop: the same request as before closed loops existed
+        doc.pop("control", None)
     return json.loads(json.dumps(doc, default=str))
 
 
@@ -127,7 +129,8 @@ def replay_groups(axes: Sequence[Axis], pts: Sequence[Point], lockstep: Sequence
     the first point with the same values on every axis that is not receiver-side. The methods, the output keys
     and duration_s count as sender-side here: a recording holds the kinds its own methods took, its scans only
     with output.rerun on, and the frames its own duration gave. A point on the realtime clock is its own group
-    (nothing to record: what its ego holds depends on the wall clock)."""
+    (nothing to record: what its ego holds depends on the wall clock); so is a closed-loop point (`lockstep` False
+    for it too)."""
     from v2vsim.recording.messages import receiver_side
 
     def sender_side(key: str) -> bool:
@@ -157,7 +160,9 @@ def plan(scenario: Path, axes: Sequence[Axis], pts: Sequence[Point], seeds: Sequ
     (they share decoding, ground truth and equal fusions: agents.evaluate.evaluate_points), split into as many
     batches of neighbouring points as keep the 2 x `jobs` replay slots busy (batches_per_recording)."""
     configs = [effective_config(scenario, [*p.overrides(axes), *base]) for p in pts]
-    groups = (replay_groups(axes, pts, [c["transport"]["clock"] == "lockstep" for c in configs]) if replay
+    # a closed-loop point runs live: what its CAVs sensed depends on how its ego drove, which every key can change
+    groups = (replay_groups(axes, pts, [c["transport"]["clock"] == "lockstep" and c.get("control") is None
+                                        for c in configs]) if replay
               else list(range(len(pts))))
     recorders = {g for i, g in enumerate(groups) if g != i}
 

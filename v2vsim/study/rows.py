@@ -58,6 +58,17 @@ def per_frame_vehicle_iou(rrd: Path) -> dict[str, dict[int, float]]:
     return out
 
 
+def driving_columns(driving: dict[str, Any] | None) -> dict[str, Any]:
+    """A closed-loop run's driving totals as sweep columns (`driving_collisions`, ...), the same on each of its
+    method rows: one method drove (control.method, its own column of the grid); {} for an open-loop run."""
+    if not driving:
+        return {}
+    out: dict[str, Any] = {"driving_method": driving.get("method")}
+    for k, v in (driving.get("total") or {}).items():
+        out[f"driving_{k}"] = int(v) if isinstance(v, bool) else v
+    return out
+
+
 def collect(results: Sequence[RunResult]) -> list[Row]:
     """Rows of every run that went through its frames (complete or degraded), in plan order (point, seed),
     methods in the run's order."""
@@ -72,8 +83,9 @@ def collect(results: Sequence[RunResult]) -> list[Row]:
         methods = doc.get("methods") or {}
         logged = None
         status = str(doc.get("status", r.status))
+        driving = driving_columns(doc.get("driving"))
         for method, metrics in methods.items():
-            metrics = dict(metrics)
+            metrics = {**dict(metrics), **driving}
             counts = metrics.pop(COUNTS_KEY, None)
             frames = metrics.pop(FRAMES_KEY, None)
             for key in RUN_ONLY_KEYS:

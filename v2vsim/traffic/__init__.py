@@ -12,12 +12,13 @@ from v2vsim.traffic.base import BackendBase, TrafficBackend, cav_id
 __all__ = ["BackendBase", "TrafficBackend", "cav_id", "make_backend"]
 
 
-def make_backend(scenario: Scenario) -> TrafficBackend:
-    """The scenario's traffic backend, not yet started: call `reset()` (or use it in `with`)."""
+def make_backend(scenario: Scenario, ssm_file: str | None = None) -> TrafficBackend:
+    """The scenario's traffic backend, not yet started: call `reset()` (or use it in `with`). ssm_file: where a
+    closed-loop SUMO run logs its SSM device."""
     if scenario.traffic.backend == "sumo":
         from v2vsim.traffic.sumo import SumoBackend
 
-        return SumoBackend(scenario)
+        return SumoBackend(scenario, ssm_file=ssm_file)
     if scenario.traffic.backend == "highway-env":
         from v2vsim.traffic.highway import HighwayEnvBackend
 

@@ -41,6 +41,7 @@ import sumolib
 from v2vsim.config import Scenario
 from v2vsim.traffic.base import BackendBase, cav_id
 from v2vsim.traffic.static_map import load_sumo_map
+from v2vsim.traffic.sumo_control import DrivenVehicles, control_args
 from v2vsim.traffic.sumo_network import Route, analyse_network
 from v2vsim.traffic.sumo_placement import CavPlan, CavSpec, Placement, choose_placement, insert_cavs, meet_ref
 from v2vsim.world.geometry import Pose, wrap_angle
@@ -76,6 +77,12 @@ def _libsumo() -> ModuleType:
     return libsumo
 
 
+def _egos(scenario: Scenario, cavs: tuple[str, ...]) -> tuple[str, ...]:
+    """The ego CAVs (cavs.ego: first | all | ids), whose vehicles a closed loop drives."""
+    ego = scenario.cavs.ego
+    return cavs[:1] if ego == "first" else cavs if ego == "all" else tuple(c for c in ego if c in cavs)
+
+
 def sumo_to_pose(x_front: float, y_front: float, angle_deg: float, length: float) -> Pose:
     """SUMO front-bumper position + navigation angle -> footprint-centre Pose (z = 0, ground)."""
     yaw = math.radians(90.0 - angle_deg)
@@ -91,7 +98,7 @@ def sumo_to_pose(x_front: float, y_front: float, angle_deg: float, length: float
 class SumoBackend(BackendBase):
     """TrafficBackend over libsumo. One running simulation per process (a libsumo limit)."""
 
-    def __init__(self, scenario: Scenario) -> None:
+    def __init__(self, scenario: Scenario, ssm_file: str | None = None) -> None:
         if scenario.traffic.net is None:
             raise ValueError(f"{scenario.source}: traffic.net is required for the sumo backend")
         self.scenario = scenario
@@ -111,6 +118,10 @@ class SumoBackend(BackendBase):
         self.cav_plans: tuple[CavPlan, ...] = ()
         self.placement: Placement | None = None
         self._chosen: tuple[CavSpec, ...] | None = None  # the look-ahead's choice; a later reset() reuses it
+        # closed loop (control section): the egos' vehicles follow commands; SSM log to ssm_file
+        self._ssm_file = ssm_file
+        self._driven = (None if scenario.control is None else
+                        DrivenVehicles(self._net, _egos(scenario, self._cav_ids), scenario.control))
 
     # -- public API ----------------------------------------------------------------------------
 
@@ -127,11 +138,14 @@ class SumoBackend(BackendBase):
         if _libsumo().simulation.isLoaded():
             raise RuntimeError(_ONE_SIM)
         specs = self._choose_placement()
-        ls = self._launch(specs)
+        ls = self._launch(specs, final=True)
+        if self._driven is not None:
+            self._driven.take_over(ls, self._known)
         return self._state(ls)
 
-    def _launch(self, specs: tuple[CavSpec, ...]) -> ModuleType:
-        """Start SUMO, warm up, insert the CAVs of `specs` and take the step that makes frame 0."""
+    def _launch(self, specs: tuple[CavSpec, ...], final: bool = False) -> ModuleType:
+        """Start SUMO, warm up, insert the CAVs of `specs` and take the step that makes frame 0. `final`: the
+        run itself, not a placement look-ahead (only it gets the closed loop's collision and SSM options)."""
         ls = _libsumo()
         if ls.simulation.isLoaded():
             raise RuntimeError(_ONE_SIM)
@@ -141,7 +155,9 @@ class SumoBackend(BackendBase):
                   "--no-step-log", "true", "--no-warnings", "true", "--duration-log.disable", "true",
                   "--xml-validation", "never", "--time-to-teleport", "-1", "--eager-insert", "true",
                   "--collision.action", "warn", "--lanechange.duration", "2",
-                  "--max-depart-delay", repr(_MAX_DEPART_DELAY_S)])
+                  "--max-depart-delay", repr(_MAX_DEPART_DELAY_S),
+                  *(control_args(sc.control, self._driven.ids, self._ssm_file)
+                    if final and sc.control is not None and self._driven is not None else [])])
         self._running = True
         self._frame = 0
         self._known = []
@@ -230,6 +246,16 @@ class SumoBackend(BackendBase):
         self._advance(ls)
         self._frame += 1
         return self._state(ls)
+
+    def command(self, speeds: dict[str, float]) -> None:
+        """Closed loop: the driven vehicles' speeds (m/s) for the next step()."""
+        if self._driven is not None and self._running:
+            self._driven.command(_libsumo(), speeds, self._known)
+
+    def release(self, vehicle: str) -> None:
+        """Closed loop: give a driven vehicle back to SUMO's driver (its ego is gone)."""
+        if self._driven is not None and self._running:
+            self._driven.release(_libsumo(), vehicle, self._known)
 
     def close(self) -> None:
         """Stop this backend's SUMO run (if it is the running one) so another can start."""
@@ -333,5 +359,6 @@ class SumoBackend(BackendBase):
                 id=vid, kind=_KIND.get(r[tc.VAR_TYPE], "car"), cav=vid in cav_set,
                 pose=sumo_to_pose(float(x), float(y), float(r[tc.VAR_ANGLE]), length),
                 extent=(length, width, height), speed=float(r[tc.VAR_SPEED])))
+        driven = () if self._driven is None else self._driven.observe(ls, [a.id for a in actors])
         return WorldState(time=self._frame * self._dt, frame=self._frame, actors=tuple(actors),
-                          static=self._static)
+                          static=self._static, driven=driven)

@@ -12,7 +12,7 @@ import json
 import numpy as np
 
 from v2vsim.world.geometry import Pose
-from v2vsim.world.state import Actor, Building, StaticMap, WorldState
+from v2vsim.world.state import Actor, Building, DrivenState, StaticMap, WorldState
 
 MAX_WORLD_BYTES = 1 << 20
 """The longest world message an agent accepts: ~150 bytes an actor, so some 7,000 actors (a scenario's worlds
@@ -21,9 +21,43 @@ MAX_STATIC_BYTES = 16 << 20
 """The longest static map (compressed .npz) an agent accepts: the shipped ones are under 25 KB."""
 
 
+def _rounded(points: np.ndarray | None) -> list | None:
+    return None if points is None else np.round(np.asarray(points, dtype=np.float64), 2).tolist()
+
+
+def _driven_to_json(d: DrivenState) -> dict:
+    return {"id": d.id, "path": _rounded(d.path), "speed_limit": d.speed_limit, "stop_m": d.stop_m,
+            "conflict_zone": _rounded(d.conflict_zone), "in_junction": d.in_junction, "odometer_m": d.odometer_m,
+            "collisions": list(d.collisions), "ssm": list(d.ssm)}
+
+
+def _driven_from_json(doc: dict) -> DrivenState:
+    def points(v: object) -> np.ndarray | None:
+        if v is None:
+            return None
+        a = np.asarray(v, dtype=np.float64)
+        if a.ndim != 2 or a.shape[1] != 2 or not np.isfinite(a).all():
+            raise ValueError("a driven vehicle's path or conflict zone is not a list of finite (x, y) points")
+        return a
+
+    def opt(v: object) -> float | None:
+        return None if v is None else float(v)  # type: ignore[arg-type]
+
+    path = points(doc["path"])
+    ssm = [opt(v) for v in doc["ssm"]]
+    if path is None or len(ssm) != 3:
+        raise ValueError("a driven vehicle needs a path and three SSM values")
+    return DrivenState(id=str(doc["id"]), path=path, speed_limit=float(doc["speed_limit"]),
+                       stop_m=opt(doc["stop_m"]), conflict_zone=points(doc["conflict_zone"]),
+                       in_junction=bool(doc["in_junction"]), odometer_m=float(doc["odometer_m"]),
+                       collisions=tuple(str(c) for c in doc["collisions"]), ssm=(ssm[0], ssm[1], ssm[2]))
+
+
 def world_to_bytes(world: WorldState) -> bytes:
     doc = world.to_json()
     doc["frame"] = world.frame
+    if world.driven:  # closed loop only: an open-loop world's bytes are as before
+        doc["driven"] = [_driven_to_json(d) for d in world.driven]
     return json.dumps(doc, separators=(",", ":")).encode()
 
 
@@ -40,7 +74,9 @@ def world_from_bytes(data: bytes, static: StaticMap) -> WorldState:
             )
             for a in doc["actors"]
         )
-        return WorldState(time=float(doc["time"]), frame=int(doc["frame"]), actors=actors, static=static)
+        driven = tuple(_driven_from_json(d) for d in doc.get("driven", ()))
+        return WorldState(time=float(doc["time"]), frame=int(doc["frame"]), actors=actors, static=static,
+                          driven=driven)
     except (KeyError, TypeError, ValueError, json.JSONDecodeError) as e:
         raise ValueError(f"malformed world message: {e}") from None
 

@@ -57,6 +57,29 @@ class StaticMap:
 
 
 @dataclass(frozen=True)
+class DrivenState:
+    """What the simulator says about one vehicle v2vsim drives (closed loop, v2vsim/traffic/sumo_control.py): the
+    route ahead that its planner may know (map knowledge, not perception) and what SUMO measured of its safety.
+
+    path: (M, 2) world-frame polyline from its front bumper forward along its route (about 120 m).
+    stop_m: distance along `path` to the stop line where it must yield (None: it has priority, or is past it).
+    conflict_zone: (K, 2) outline of the junction it crosses next or is in (None: past it).
+    collisions: the vehicles SUMO found it touching at this step.
+    ssm: SUMO's SSM device so far (min TTC s, max DRAC m/s^2, min PET s); None where no encounter measured one.
+    """
+
+    id: str
+    path: np.ndarray
+    speed_limit: float
+    stop_m: float | None
+    conflict_zone: np.ndarray | None
+    in_junction: bool
+    odometer_m: float
+    collisions: tuple[str, ...] = ()
+    ssm: tuple[float | None, float | None, float | None] = (None, None, None)
+
+
+@dataclass(frozen=True)
 class WorldState:
     """One tick of the world: sim time (s), frame index, actors. The static map is shared by reference."""
 
@@ -64,6 +87,7 @@ class WorldState:
     frame: int
     actors: tuple[Actor, ...]
     static: StaticMap = field(repr=False)
+    driven: tuple[DrivenState, ...] = ()  # closed loop only: the vehicles v2vsim drives
 
     @property
     def cavs(self) -> tuple[Actor, ...]:
