@@ -1,0 +1,206 @@
+"""The planner in closed loop on synthetic perception: it follows a perceived leader at IDM's equilibrium gap,
+stops behind a standing obstacle, yields at a stop line to a crossing vehicle whose gap is too short (and only
+then), and ignores what is beside its path."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from v2vsim.control.geometry import point_in_polygon, project_onto_polyline, ray_to_grown_polygon
+from v2vsim.control.perceived import Obstacle
+from v2vsim.control.planner import Plan, PlannerConfig, RouteAhead, find_leader, plan
+from v2vsim.control.tracking import Track, track
+from v2vsim.world.geometry import Pose
+
+DT = 0.1
+EGO_LEN = 4.5
+LINE_X = 22.25  # the stop line: 20 m ahead of the front bumper of an ego at x = 0
+ZONE = np.array([[LINE_X, -5.0], [LINE_X + 10.0, -5.0], [LINE_X + 10.0, 5.0], [LINE_X, 5.0]])
+
+
+def _route(ego_x: float, speed_limit: float = 13.9, junction: bool = False) -> RouteAhead:
+    """A straight route along +x from the front bumper of an ego at (ego_x, 0) facing east."""
+    front = ego_x + EGO_LEN / 2
+    path = np.array([[front, 0.0], [front + 300.0, 0.0]])
+    if junction and front < LINE_X:
+        return RouteAhead(path, speed_limit, LINE_X - front, ZONE)
+    return RouteAhead(path, speed_limit, None, None)
+
+
+@dataclass(frozen=True)
+class _Step:
+    ego_x: float
+    speed: float
+    plan: Plan
+    others: tuple[tuple[float, float], ...]
+
+
+def _drive(ego_v: float, others: list[tuple[float, float, float, float, float]], seconds: float,
+           cfg: PlannerConfig, junction: bool = False) -> list[_Step]:
+    """Closed loop: truth -> obstacles -> `track` -> `plan` -> the ego moves at the commanded speed.
+    `others` are (x, y, yaw, vx, vy) moving at constant velocity."""
+    ego_x, v = 0.0, ego_v
+    tracks: tuple[Track, ...] = ()
+    nid = 0
+    out = []
+    for k in range(round(seconds / DT)):
+        t = k * DT
+        now = tuple((x + vx * t, y + vy * t) for x, y, _, vx, vy in others)
+        obs = tuple(Obstacle(px, py, o[2], 4.5, 1.8) for (px, py), o in zip(now, others, strict=True))
+        tracks, nid = track(tracks, obs, DT, nid)
+        p = plan(Pose(ego_x, 0.0, 0.0, 0.0), v, EGO_LEN, _route(ego_x, junction=junction), tracks, cfg, DT)
+        out.append(_Step(ego_x, v, p, now))
+        ego_x += p.speed * DT
+        v = p.speed
+    return out
+
+
+def _gap(step: _Step, i: int = 0) -> float:
+    """Bumper-to-bumper gap from the ego to other vehicle i ahead of it on the x axis."""
+    return step.others[i][0] - 4.5 / 2 - (step.ego_x + EGO_LEN / 2)
+
+
+def test_follows_a_perceived_leader_at_the_idm_equilibrium_gap() -> None:
+    cfg = PlannerConfig(desired_speed=25.0)
+    steps = _drive(15.0, [(EGO_LEN / 2 + 30.0, 0.0, 0.0, 10.0, 0.0)], 20.0, cfg)
+    assert steps[0].plan.reason == "leader" and steps[0].plan.accel < 0
+    assert all(s.plan.reason == "leader" for s in steps)
+    assert min(_gap(s) for s in steps) > 0  # never collides
+    end = steps[-1]
+    assert abs(end.speed - 10.0) < 0.3
+    # Equilibrium of Eq. 2 with dv = 0: s = s* / sqrt(1 - (v/v0)^delta), s* = s0 + v T = 17 m, here 17.2 m.
+    assert abs(_gap(end) - (cfg.min_gap_m + 10.0 * cfg.time_headway_s)) < 1.5
+
+
+def test_stops_behind_a_perceived_standing_obstacle() -> None:
+    cfg = PlannerConfig()
+    steps = _drive(14.0, [(EGO_LEN / 2 + 40.0, 0.0, 0.0, 0.0, 0.0)], 30.0, cfg)
+    assert all(s.plan.speed >= 0.0 for s in steps)
+    assert all(s.plan.accel >= -cfg.max_decel - 1e-9 for s in steps)
+    assert steps[-1].speed < 0.05
+    assert min(_gap(s) for s in steps) > 0
+    assert 1.0 < _gap(steps[-1]) < 5.0
+
+
+def test_yields_to_a_crossing_vehicle_whose_gap_is_too_short() -> None:
+    """12 m/s from 30 m below the zone (2.3 s to the zone grown by 2 m < 5 s): the ego brakes for the line, is
+    still short of it when the crossing vehicle has left the zone, then goes."""
+    cfg = PlannerConfig()
+    foe = (LINE_X + 5.0, -5.0 - 30.0, math.pi / 2, 0.0, 12.0)
+    steps = _drive(10.0, [foe], 10.0, cfg, junction=True)
+    assert steps[0].plan.reason == "yield" and steps[0].plan.obstacle is not None
+    clear_t = (5.0 + cfg.zone_margin_m - foe[1]) / 12.0  # the foe's centre leaves the grown zone
+    waiting = [s for k, s in enumerate(steps) if k * DT < clear_t]
+    assert max(s.ego_x + EGO_LEN / 2 for s in waiting) < LINE_X  # never past the line while the foe is in the way
+    assert all(s.plan.reason == "yield" for s in waiting[1:])
+    assert steps[-1].ego_x + EGO_LEN / 2 > LINE_X  # and went once the junction was clear
+
+
+def test_stops_at_the_line_for_a_stream_of_crossing_vehicles() -> None:
+    """Six vehicles 20 m apart at 12 m/s (1.7 s gaps) keep the junction blocked for 12 s: the ego comes to rest
+    about s0 before the stop line, waits there, and goes after the last one."""
+    cfg = PlannerConfig()
+    stream = [(LINE_X + 5.0, -35.0 - 20.0 * j, math.pi / 2, 0.0, 12.0) for j in range(6)]
+    steps = _drive(10.0, stream, 16.0, cfg, junction=True)
+    last_clear_t = (5.0 + cfg.zone_margin_m - stream[-1][1]) / 12.0
+    waiting = [s for k, s in enumerate(steps) if k * DT < last_clear_t]
+    assert all(s.plan.speed >= 0.0 and s.plan.accel >= -cfg.max_decel - 1e-9 for s in steps)
+    assert max(s.ego_x + EGO_LEN / 2 for s in waiting) < LINE_X
+    at_rest = waiting[-1]
+    assert at_rest.speed < 0.05 and at_rest.plan.reason == "yield"
+    assert 0.5 < LINE_X - (at_rest.ego_x + EGO_LEN / 2) < 4.0
+    assert steps[-1].ego_x + EGO_LEN / 2 > LINE_X
+
+
+def test_proceeds_when_the_crossing_vehicle_is_far() -> None:
+    """The same vehicle 100 m away (8.2 s to the grown zone) leaves an acceptable gap: no yielding at all."""
+    cfg = PlannerConfig()
+    steps = _drive(10.0, [(LINE_X + 5.0, -5.0 - 100.0, math.pi / 2, 0.0, 12.0)], 4.0, cfg, junction=True)
+    assert all(s.plan.reason != "yield" for s in steps)
+    assert steps[-1].ego_x + EGO_LEN / 2 > LINE_X
+    assert all(s.plan.accel > 0 for s in steps)
+
+
+def _new_track(x: float, y: float, yaw: float) -> Track:
+    return Track(0, x, y, yaw, 4.5, 1.8, 0.0, 0.0, 1)
+
+
+def test_a_new_track_of_unknown_speed_pointing_at_the_zone_is_yielded_to() -> None:
+    cfg = PlannerConfig()
+    route = _route(0.0, junction=True)
+    ego = Pose(0.0, 0.0, 0.0, 0.0)
+    for yaw in (math.pi / 2, -math.pi / 2):  # pointing at the zone, or away from it: a blob's yaw has no front
+        p = plan(ego, 10.0, EGO_LEN, route, (_new_track(LINE_X + 5.0, -5.0 - 40.0, yaw),), cfg, DT)
+        assert p.reason == "yield" and p.obstacle is not None and p.speed < 10.0
+    # Driving past the zone (its heading misses it either way) and far away (98 m / 13.9 m/s = 7 s): no conflict.
+    assert plan(ego, 10.0, EGO_LEN, route, (_new_track(LINE_X + 5.0, -30.0, 0.0),), cfg, DT).reason == "free"
+    assert plan(ego, 10.0, EGO_LEN, route, (_new_track(LINE_X + 5.0, -105.0, math.pi / 2),), cfg, DT).reason == "free"
+
+
+def test_own_lane_traffic_is_not_a_crossing_foe() -> None:
+    """A follower closing in behind and a vehicle ahead driving through the junction the ego's way are car
+    following, not gap acceptance; a track on the ego itself is ignored."""
+    cfg = PlannerConfig()
+    route = _route(0.0, junction=True)
+    ego = Pose(0.0, 0.0, 0.0, 0.0)
+    follower = Track(1, -10.0, 0.0, 0.0, 4.5, 1.8, 12.0, 0.0, 5)
+    through = Track(2, LINE_X + 5.0, 0.2, 0.0, 4.5, 1.8, 10.0, 0.0, 5)  # inside the zone, going east
+    itself = Track(3, 0.3, 0.1, 0.0, 4.5, 1.8, 10.0, 0.0, 5)
+    p = plan(ego, 10.0, EGO_LEN, route, (follower, through, itself), cfg, DT)
+    assert p.reason == "leader" and p.obstacle == through
+    crossing = Track(4, LINE_X + 5.0, 0.2, math.pi / 2, 4.5, 1.8, 0.0, 8.0, 5)  # inside the zone, going north
+    assert plan(ego, 10.0, EGO_LEN, route, (crossing,), cfg, DT).reason == "yield"
+
+
+def test_an_obstacle_beside_the_path_is_not_a_leader() -> None:
+    cfg = PlannerConfig()
+    route = _route(0.0)
+    ego = Pose(0.0, 0.0, 0.0, 0.0)
+    beside = Track(0, 20.0, 5.0, 0.0, 4.5, 1.8, 0.0, 0.0, 3)
+    assert find_leader(route, (beside,), cfg) is None
+    p = plan(ego, 10.0, EGO_LEN, route, (beside,), cfg, DT)
+    assert p.reason == "free" and p.obstacle is None and p.accel > 0
+    straddling = Track(0, 20.0, 2.0, 0.0, 4.5, 1.8, 0.0, 0.0, 3)  # 2 m off: its footprint reaches the lane
+    assert plan(ego, 10.0, EGO_LEN, route, (straddling,), cfg, DT).reason == "leader"
+    behind = Track(0, -10.0, 0.0, 0.0, 4.5, 1.8, 0.0, 0.0, 3)
+    assert plan(ego, 10.0, EGO_LEN, route, (behind,), cfg, DT).reason == "free"
+
+
+def test_a_stop_line_without_a_zone_is_held() -> None:
+    route = RouteAhead(np.array([[2.25, 0.0], [300.0, 0.0]]), 13.9, 10.0, None)
+    p = plan(Pose(0.0, 0.0, 0.0, 0.0), 10.0, EGO_LEN, route, (), PlannerConfig(), DT)
+    assert p.reason == "stop_line" and p.obstacle is None and p.accel < 0
+
+
+def test_commands_stay_within_limits_and_never_reverse() -> None:
+    cfg = PlannerConfig()
+    wall = Track(0, EGO_LEN / 2 + 3.0, 0.0, 0.0, 4.5, 1.8, 0.0, 0.0, 3)  # 0.75 m ahead at 20 m/s
+    p = plan(Pose(0.0, 0.0, 0.0, 0.0), 20.0, EGO_LEN, _route(0.0), (wall,), cfg, DT)
+    assert p.accel == -cfg.max_decel and np.isclose(p.speed, 20.0 - cfg.max_decel * DT)
+    p = plan(Pose(0.0, 0.0, 0.0, 0.0), 0.3, EGO_LEN, _route(0.0), (wall,), cfg, DT)
+    assert p.speed == 0.0 and np.isclose(p.accel, -3.0)
+
+
+def test_polyline_projection() -> None:
+    path = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0]])  # east, then north
+    s, lat, tangent = project_onto_polyline(path, np.array([[5.0, 1.0], [11.0, 4.0], [-3.0, -2.0], [10.0, 15.0]]))
+    assert np.allclose(s, [5.0, 14.0, -3.0, 25.0])  # the ends are extended: behind is s < 0, beyond s > length
+    assert np.allclose(lat, [1.0, -1.0, -2.0, 0.0])
+    assert np.allclose(tangent, [[1, 0], [0, 1], [1, 0], [0, 1]])
+
+
+def test_rays_and_the_grown_polygon() -> None:
+    square = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]])
+    assert point_in_polygon(square, np.array([[5.0, 5.0], [11.0, 5.0]])).tolist() == [True, False]
+    assert np.isclose(ray_to_grown_polygon(square, 2.0, np.array([5.0, -30.0]), np.array([0.0, 3.0])), 28.0)
+    assert ray_to_grown_polygon(square, 2.0, np.array([5.0, -30.0]), np.array([0.0, -1.0])) == math.inf
+    assert ray_to_grown_polygon(square, 2.0, np.array([11.0, 5.0]), np.array([1.0, 0.0])) == 0.0
+    # Towards a corner along the diagonal: the grown corner is a disc of radius 2 around (0, 0).
+    d = ray_to_grown_polygon(square, 2.0, np.array([-10.0, -10.0]), np.array([1.0, 1.0]))
+    assert np.isclose(d, math.hypot(10.0, 10.0) - 2.0)
+    # Passing 1.5 m beside the square's side: inside the margin, so a hit where the ray meets the grown side.
+    assert np.isclose(ray_to_grown_polygon(square, 2.0, np.array([11.5, -20.0]), np.array([0.0, 1.0])),
+                      20.0 - math.sqrt(4.0 - 1.5**2))
