@@ -94,6 +94,10 @@ def test_evaluate_changes_receiver_side_keys_and_refuses_sender_side_ones(per_li
         assert r.returncode == 2, r.stderr
         lines = r.stderr.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith(f"v2vsim: error: {key}:") and "sender-side" in lines[0]
+    # a closed-loop key (issue 46): its vehicles drove on what was perceived, so no replay can stand for it
+    r = _cli("evaluate", str(rec), "--out", str(tmp_path / "bad"), "--set", "control.method=cobevt")
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1 and lines[0].startswith("v2vsim: error: control:"), r.stderr
     r = _cli("evaluate", str(rec), "--out", str(tmp_path / "bad"), "--methods", "none,early")
     assert r.returncode == 2 and "perception.methods" in r.stderr and "points" in r.stderr
     r = _cli("evaluate", str(tmp_path / "nothing"), "--out", str(tmp_path / "bad"))

@@ -23,6 +23,7 @@ from v2vsim.perception.fuse import Prediction
 from v2vsim.world.geometry import BevGrid
 from v2vsim.world.state import Actor, WorldState
 
+SELF_M = 2.5  # a perceived obstacle centred this close to the vehicle's own centre is the vehicle itself
 NEAR_M = 40.0  # other vehicles this close are kept per frame for the trajectory PET
 
 
@@ -86,7 +87,10 @@ class Pilot:
         state = next((d for d in world.driven if d.id == self.me), None)
         if me is None or state is None:
             return None
-        self.tracks, self._next_id = track(self.tracks, self.perceived(world, pred), self.dt, self._next_id)
+        # its own vehicle, as a neighbour's late output or a blob of the map shows it, is no obstacle
+        seen = tuple(o for o in self.perceived(world, pred)
+                     if np.hypot(o.x - me.pose.x, o.y - me.pose.y) > max(SELF_M, me.extent[0] / 2))
+        self.tracks, self._next_id = track(self.tracks, seen, self.dt, self._next_id)
         route = RouteAhead(path=state.path, speed_limit=state.speed_limit, stop_m=state.stop_m,
                            conflict_zone=state.conflict_zone)
         p = plan(me.pose, me.speed, me.extent[0], route, self.tracks, self.cfg, self.dt)

@@ -1,8 +1,10 @@
 """Velocities of perceived obstacles by tracking them from frame to frame (greedy nearest-neighbour association).
 
 Perception gives positions only; the planner needs velocities (IDM's approach rate, the time a crossing vehicle
-needs to reach the junction). A track lives only as long as perception keeps seeing it: a miss drops it, so the
-planner never acts on something the method lost.
+needs to reach the junction). A track missed by perception coasts (moved on by its velocity) for at most
+`max_misses` frames (default 2, 200 ms at 10 Hz) and is then dropped: long enough that one frame's detection
+flicker does not make a vehicle vanish and reappear as a new, standing track (which the planner brakes hard
+for), short enough that the planner does not act for long on something the method lost.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ class Track:
     vx: float
     vy: float
     age: int  # frames seen in a row (1 = new: velocity unknown)
+    missed: int = 0  # frames in a row it was not seen (coasting; 0 = seen this frame)
 
 
 def _associate(predicted: np.ndarray, observed: np.ndarray, gate_m: float) -> list[tuple[int, int]]:
@@ -60,6 +63,7 @@ def track(
     next_id: int,
     gate_m: float = 4.0,
     smoothing: float = 0.5,
+    max_misses: int = 2,
 ) -> tuple[tuple[Track, ...], int]:
     """One tracking step: (tracks of this frame, the next free id).
 
@@ -67,8 +71,9 @@ def track(
     frame's obstacles by centre distance within gate_m. A matched track takes the new footprint and the velocity
     v = smoothing * (new - old position) / dt + (1 - smoothing) * v_previous (exponential smoothing; a previous
     track of age 1 has no velocity yet, so the measured one is taken as is). Unmatched obstacles start tracks with
-    v = 0 and age 1 (ids from next_id in obstacle order); unmatched previous tracks are dropped. The tracks come
-    back in the order of the obstacles they stand for.
+    v = 0 and age 1 (ids from next_id in obstacle order); an unmatched previous track coasts (moved by its velocity,
+    `missed` + 1) while it has missed at most max_misses frames, and is dropped after. The tracks come back in the
+    order of the obstacles they stand for, then the coasting ones in their previous order.
     """
     if dt <= 0:
         raise ValueError("dt must be positive")
@@ -88,4 +93,9 @@ def track(
         else:
             out.append(Track(next_id, ob.x, ob.y, ob.yaw, ob.length, ob.width, 0.0, 0.0, 1))
             next_id += 1
+    matched = set(match.values())
+    for ti, old in enumerate(previous):
+        if ti not in matched and old.missed < max_misses:
+            out.append(Track(old.id, old.x + old.vx * dt, old.y + old.vy * dt, old.yaw, old.length, old.width,
+                             old.vx, old.vy, old.age, old.missed + 1))
     return tuple(out), next_id

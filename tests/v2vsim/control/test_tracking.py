@@ -4,6 +4,7 @@ is dropped, and the same inputs give the same tracks."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from v2vsim.control.perceived import Obstacle
 from v2vsim.control.tracking import Track, track
@@ -52,12 +53,26 @@ def test_crossing_targets_keep_their_ids() -> None:
 
 
 def test_an_unmatched_track_is_dropped_and_a_far_obstacle_starts_a_new_one() -> None:
-    tracks, nid = track((), (_ob(0.0, 0.0), _ob(50.0, 0.0)), 0.1, 0)
-    tracks, nid = track(tracks, (_ob(0.5, 0.0), _ob(80.0, 0.0)), 0.1, nid)  # 30 m jump: outside the gate
+    tracks, nid = track((), (_ob(0.0, 0.0), _ob(50.0, 0.0)), 0.1, 0, max_misses=0)
+    tracks, nid = track(tracks, (_ob(0.5, 0.0), _ob(80.0, 0.0)), 0.1, nid, max_misses=0)  # 30 m jump: outside gate
     assert [(t.id, t.age) for t in tracks] == [(0, 2), (2, 1)]
     assert nid == 3
-    tracks, nid = track(tracks, (), 0.1, nid)
+    tracks, nid = track(tracks, (), 0.1, nid, max_misses=0)
     assert tracks == () and nid == 3
+
+
+def test_a_missed_track_coasts_for_max_misses_frames_then_is_dropped() -> None:
+    tracks, nid = track((), (_ob(0.0, 0.0),), 0.1, 0)
+    tracks, nid = track(tracks, (_ob(1.0, 0.0),), 0.1, nid)  # 10 m/s along +x
+    for missed in (1, 2):
+        tracks, nid = track(tracks, (), 0.1, nid)
+        assert [(t.id, t.missed) for t in tracks] == [(0, missed)]
+        assert tracks[0].x == pytest.approx(1.0 + missed * 1.0)  # moved on by its velocity
+    tracks, nid = track(tracks, (_ob(4.0, 0.0),), 0.1, nid)  # seen again: the same track, no longer missed
+    assert [(t.id, t.missed, t.age) for t in tracks] == [(0, 0, 3)]
+    for _ in range(3):
+        tracks, nid = track(tracks, (), 0.1, nid)
+    assert tracks == ()
 
 
 def test_deterministic() -> None:
