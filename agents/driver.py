@@ -28,6 +28,7 @@ from v2vsim.traffic import make_backend
 from v2vsim.world.serialize import MAX_STATIC_BYTES, MAX_WORLD_BYTES, static_to_bytes, world_to_bytes
 
 ACK_RESEND_S = 2.0  # an ego silent this long gets the worlds it has not acked again
+MAX_COMMAND_MPS2 = 50.0  # a commanded acceleration beyond this is no plan: refused and counted
 HANG_TIMEOUT_S = 120.0  # no ack for this long ends the run (exit 1, why on stderr); the ego waits 60 s for a CAV
 
 
@@ -38,7 +39,7 @@ def drive(args: AgentArgs, bus: Bus) -> int:
     acks: dict[str, int] = {}
     ack_event = threading.Event()
     published = [-1]  # the newest frame put on the bus (set before its world goes out)
-    # closed loop: ego -> frame -> the speed its planner commanded on that frame's perception (sent with its ack)
+    # closed loop: ego -> frame -> the acceleration its planner commanded on that frame's perception (with its ack)
     closed_loop = sc.control is not None
     plans: dict[str, dict[int, float]] = {}
     plans_lock = threading.Lock()
@@ -61,13 +62,13 @@ def drive(args: AgentArgs, bus: Bus) -> int:
         command = json.loads(payload).get("command")
         if command is not None and closed_loop:
             try:
-                speed = float(command["speed"])
+                accel = float(command["accel"])
             except (KeyError, TypeError, ValueError):
-                raise RejectedMessage("bad_header", "a command without a speed") from None
-            if not 0.0 <= speed < 1000.0:  # NaN fails this too
-                raise RejectedMessage("bad_header", f"a commanded speed of {speed} m/s")
+                raise RejectedMessage("bad_header", "a command without an acceleration") from None
+            if not -MAX_COMMAND_MPS2 <= accel <= MAX_COMMAND_MPS2:  # NaN fails this too
+                raise RejectedMessage("bad_header", f"a commanded acceleration of {accel} m/s^2")
             with plans_lock:  # the ego plans its own vehicle, and only that one
-                plans.setdefault(sender, {})[frame] = speed
+                plans.setdefault(sender, {})[frame] = accel
         acks[sender] = max(acks.get(sender, -1), frame)
         ack_event.set()
 

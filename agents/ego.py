@@ -304,7 +304,7 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
                 with timer.stage("planning"):
                     drive = pilot.step(world, preds.get(sc.control.method))  # type: ignore[union-attr]
                 if drive is not None:
-                    ack["command"] = {"speed": round(drive.plan.speed, 4)}
+                    ack["command"] = {"accel": round(drive.plan.accel, 4)}
             # Scoring and recording run beside the next frame's fusion; frames stay in order.
             after.submit(FusedFrame(k, world, gt, boxes_gt, preds, inp, sent, links, scans, drive))
             frames_done += 1

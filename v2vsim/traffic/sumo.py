@@ -247,10 +247,10 @@ class SumoBackend(BackendBase):
         self._frame += 1
         return self._state(ls)
 
-    def command(self, speeds: dict[str, float]) -> None:
-        """Closed loop: the driven vehicles' speeds (m/s) for the next step()."""
+    def command(self, accels: dict[str, float]) -> None:
+        """Closed loop: the driven vehicles' accelerations (m/s^2) over the next step()."""
         if self._driven is not None and self._running:
-            self._driven.command(_libsumo(), speeds, self._known)
+            self._driven.command(_libsumo(), accels, self._known, self._dt)
 
     def release(self, vehicle: str) -> None:
         """Closed loop: give a driven vehicle back to SUMO's driver (its ego is gone)."""

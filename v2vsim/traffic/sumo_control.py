@@ -3,7 +3,8 @@ and what SUMO measures of their safety.
 
 - Driven vehicles ignore SUMO's own safety: speed mode 0 (no safe-speed, right-of-way or acceleration checks),
   so a vehicle whose planner missed another one can hit it. Each step's speed comes from `command`; before the
-  first command arrives (the actuation delay) a vehicle keeps the speed it had when it was taken over.
+  first command arrives (the actuation delay) a vehicle keeps the speed it had when it was taken over. A command
+  is an acceleration, held over the step it is applied to.
 - Collisions: SUMO checks them on lanes and inside junctions (`--collision.check-junctions`), counts physical
   contact only (`--collision.mingap-factor 0`) and lets the run go on (`--collision.action warn`, already the
   backend's default).
@@ -90,11 +91,13 @@ class DrivenVehicles:
                 ls.vehicle.setSpeed(v, ls.vehicle.getSpeed(v))
                 self._taken.add(v)
 
-    def command(self, ls: ModuleType, speeds: Mapping[str, float], present: Sequence[str]) -> None:
-        """Apply each driven vehicle's commanded speed (m/s) to the next step."""
-        for v, speed in speeds.items():
+    def command(self, ls: ModuleType, accels: Mapping[str, float], present: Sequence[str], dt: float) -> None:
+        """Apply each driven vehicle's commanded acceleration (m/s^2) over the next step: its speed then is its
+        speed now + a dt (never below 0). An acceleration, not a speed: a plan acts `actuation_delay` frames after
+        the speed it was made at, and a speed planned from a stale one would jerk the vehicle back and forth."""
+        for v, a in accels.items():
             if v in self._taken and v in present:
-                ls.vehicle.setSpeed(v, max(0.0, float(speed)))
+                ls.vehicle.setSpeed(v, max(0.0, float(ls.vehicle.getSpeed(v)) + float(a) * dt))
 
     def release(self, ls: ModuleType, vehicle: str, present: Sequence[str]) -> None:
         """Give a vehicle back to SUMO's own driver (its ego is gone: nobody plans for it any more)."""

@@ -47,11 +47,11 @@ def test_a_driven_vehicle_follows_its_commands_and_reports_its_route(tmp_path: P
         again = world_from_bytes(world_to_bytes(w), w.static).driven[0]
         assert again.id == d.id and np.allclose(again.path, d.path, atol=0.01) and again.stop_m == d.stop_m
         for _ in range(5):
-            b.command({"cav0": 0.0})  # a stop: speed mode 0 obeys at once (no SUMO deceleration limit)
+            b.command({"cav0": -50.0})  # speed mode 0: no SUMO deceleration limit
             w = b.step()
         assert w.actor("cav0").speed == 0.0  # type: ignore[union-attr]
         for _ in range(30):
-            b.command({"cav0": 8.0})
+            b.command({"cav0": 2.0})
             w = b.step()
         assert w.actor("cav0").speed == pytest.approx(8.0)  # type: ignore[union-attr]
         assert w.driven[0].odometer_m > d.odometer_m + 20
