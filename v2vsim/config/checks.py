@@ -20,6 +20,9 @@ def _check_cross_fields(sc: Scenario, loader: _Loader) -> None:
                     f"allowed for modality {sc.perception.modality!r}: {', '.join(allowed)}")
     if sc.traffic.backend == "sumo" and sc.traffic.net is None:
         loader.fail("traffic.net", "required for backend 'sumo': a SUMO .net.xml relative to the YAML")
+    if sc.traffic.hidden_foe is not None and sc.traffic.backend != "sumo":
+        loader.fail("traffic.hidden_foe", "needs traffic.backend 'sumo' (the foe is placed on a SUMO junction); "
+                    "allowed otherwise: null")
     if isinstance(sc.cavs.ego, tuple) and not sc.cavs.ego:
         loader.fail("cavs.ego", "an empty list; allowed: 'first', 'all' or a list of CAV ids")
     if sc.comm.drop.model == "gilbert_elliott" and sc.comm.drop.p_bg == 0 and sc.comm.drop.p_gb > 0:

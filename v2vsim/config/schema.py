@@ -50,6 +50,19 @@ class _Methods:
 
 
 @dataclass(frozen=True)
+class HiddenFoeConfig:
+    """One extra main-road vehicle, foe0, that buildings hide from the ego (v2vsim/traffic/sumo_hidden_foe.py): it
+    reaches the main junction `arrival_offset_s` (drawn per seed) after the ego's free-flow arrival at its stop line.
+    attentive false: it does not brake for a vehicle already in the junction (SUMO's priority-road drivers do)."""
+
+    arrival_offset_s: tuple[float, float] = _f((0.5, 2.5), "[lo, hi] with -10 <= lo <= hi <= 10 (seconds after the "
+                                               "ego's free-flow arrival at its stop line)",
+                                               lambda v: -10 <= v[0] <= v[1] <= 10)
+    attentive: bool = False
+    side: Literal["auto", "left", "right"] = "auto"  # auto: the main-road arm that buildings hide from the ego
+
+
+@dataclass(frozen=True)
 class TrafficConfig:
     backend: Literal["sumo", "highway-env"] = "sumo"
     net: str | None = _f(None, "path to a SUMO .net.xml, relative to the YAML", path="file?")
@@ -58,6 +71,7 @@ class TrafficConfig:
     warmup_s: float = _f(10.0, ">= 0 (background traffic runs this long before frame 0)", _nonneg)
     building_height_m: tuple[float, float] = _f((8.0, 15.0), "[lo, hi] with 0 < lo <= hi",
                                                 lambda v: 0 < v[0] <= v[1])
+    hidden_foe: HiddenFoeConfig | None = None  # null: no foe (SUMO backend only)
 
 
 @dataclass(frozen=True)

@@ -55,6 +55,9 @@ class _Loader:
             args = typing.get_args(tp)
             if raw is None and type(None) in args:
                 return None
+            for a in args:
+                if dataclasses.is_dataclass(a) and isinstance(raw, dict):
+                    return self.value(a, raw, key)  # a mapping is that section: its own errors name the key inside
             errors = []
             for a in args:
                 if a is type(None):

@@ -42,6 +42,7 @@ from v2vsim.config import Scenario
 from v2vsim.traffic.base import BackendBase, cav_id
 from v2vsim.traffic.static_map import load_sumo_map
 from v2vsim.traffic.sumo_control import DrivenVehicles, control_args
+from v2vsim.traffic.sumo_hidden_foe import FoePlan, insert_hidden_foe
 from v2vsim.traffic.sumo_network import Route, analyse_network
 from v2vsim.traffic.sumo_placement import CavPlan, CavSpec, Placement, choose_placement, insert_cavs, meet_ref
 from v2vsim.world.geometry import Pose, wrap_angle
@@ -117,6 +118,7 @@ class SumoBackend(BackendBase):
         self._bg_count = 0
         self.cav_plans: tuple[CavPlan, ...] = ()
         self.placement: Placement | None = None
+        self.hidden_foe: FoePlan | None = None  # traffic.hidden_foe: where foe0 went (sumo_hidden_foe)
         self._chosen: tuple[CavSpec, ...] | None = None  # the look-ahead's choice; a later reset() reuses it
         # closed loop (control section): the egos' vehicles follow commands; SSM log to ssm_file
         self._ssm_file = ssm_file
@@ -172,6 +174,7 @@ class SumoBackend(BackendBase):
         for _ in range(max(0, warm_steps - 1)):
             self._advance(ls)
         self.cav_plans = insert_cavs(ls, self._net, self.topology, specs, _CAV_LENGTH, _MIN_GAP)
+        self.hidden_foe = insert_hidden_foe(ls, self._net, self.topology, sc, self.cav_plans, self._static.buildings)
         self._advance(ls)
         for margin in (2.0, 3.0, 4.0, 6.0):  # rare: SUMO refused a spot; re-plan it more cautiously
             missing = {c for c in self._cav_ids if c not in self._known}

@@ -393,6 +393,11 @@ def test_points_that_differ_only_in_receiver_side_keys_replay_the_first_ones_rec
     assert [(s.point.texts, s.records, s.replayed) for s in d.specs] == [
         (("lockstep", "0"), True, False), (("lockstep", "0.5"), False, True),
         (("realtime", "0"), False, False), (("realtime", "0.5"), False, False)]
+    # a closed-loop point (issue 46) runs live: its ego drove on what it perceived, so even a channel key changes
+    # what the CAVs sensed; the open-loop points of the same sweep still replay
+    d = prepare(_args(tmp_path, grid=("control.method=oracle,none", "comm.latency_ms.mean=0,100"), seeds="0",
+                      replay=True))
+    assert not any(s.replayed or s.records for s in d.specs) and len(d.specs) == 4
     # the dask engine and the realtime clock simulate every run, saying why
     assert prepare(_args(tmp_path, "transport.clock=realtime", replay=True)).no_replay.startswith("transport.clock")
     assert prepare(_args(tmp_path)).no_replay == "--no-replay"
