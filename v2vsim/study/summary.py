@@ -4,6 +4,8 @@ Per grid point and metric: each method's mean over seeds with a 95% interval, an
 (every method minus `none`; `cobevt` minus every other method), from the two-level bootstrap in
 v2vsim.study.stats. `iou_vehicle_frame_mean` is resampled over seeds and frames when every run of the
 point has per-frame values (recording.rrd); every other metric is a whole-run value, resampled over seeds.
+A closed-loop sweep adds its driving comparison against `none` (v2vsim.study.driving) to sweep.json and
+sweep.md; an open-loop sweep's files do not change.
 """
 
 from __future__ import annotations
@@ -18,6 +20,9 @@ from typing import Any
 
 import numpy as np
 
+from v2vsim.study.driving import BASELINE as DRIVING_BASELINE
+from v2vsim.study.driving import LABELS as DRIVING_LABELS
+from v2vsim.study.driving import MEASURES, METHOD_KEY, DrivingStudy
 from v2vsim.study.grid import Axis, Point
 from v2vsim.study.rows import Row, methods_of, metric_columns
 from v2vsim.study.stats import LEVEL, Interval, interval, paired_clusters
@@ -107,7 +112,8 @@ def _point_json(axes: Sequence[Axis], p: Point) -> dict[str, Any]:
 
 
 def sweep_json(meta: dict, axes: Sequence[Axis], rows: Sequence[Row], stats: Sequence[PointStats],
-               out: Path) -> dict:
+               out: Path, driving: DrivingStudy | None = None) -> dict:
+    """sweep.json's document; `driving` (a closed-loop sweep's comparison) adds its "driving" block."""
     doc = dict(meta)
     doc["grid"] = [{"key": a.key, "values": list(a.values), "texts": list(a.texts)} for a in axes]
     doc["methods"] = methods_of(rows)
@@ -124,6 +130,8 @@ def sweep_json(meta: dict, axes: Sequence[Axis], rows: Sequence[Row], stats: Seq
                      "differences": [{"a": a, "b": c, **(iv.to_json() if iv else {"mean": None})}
                                      for (a, c), iv in s.differences.items()]}
                     for s in stats]
+    if driving is not None:  # only then: an open-loop sweep's document is unchanged
+        doc["driving"] = driving.to_json()
     return doc
 
 
@@ -176,8 +184,39 @@ def _metric_tables(key: str, entries: Sequence[tuple[str, PointStats | None]], c
     return [*lines, ""]
 
 
+def driving_md(d: DrivingStudy) -> list[str]:
+    """sweep.md's closed-loop section: per driving measure, every method against none at the same other grid
+    values, paired by seed."""
+    lines = ["## Driving against none (closed loop)", ""]
+    if d.method_axis is None:
+        return [*lines, f"{METHOD_KEY} is not swept (one method drives every run): nothing to compare against "
+                f"{DRIVING_BASELINE}; sweep.json's `driving.points` has each point's means.", ""]
+    if not d.versus:
+        return [*lines, f"No {METHOD_KEY} but {DRIVING_BASELINE} has finished runs with a {DRIVING_BASELINE} twin "
+                f"(the same values of the other swept keys): nothing to compare.", ""]
+    lines += [f"Each run drives one method ({METHOD_KEY}); a method is compared with the {DRIVING_BASELINE} runs at "
+              f"the same values of the other swept keys **on the same seeds** (the same traffic). Cells: mean over "
+              f"the seeds both have a value for; difference = method - {DRIVING_BASELINE}, paired by seed, "
+              f"[{int(100 * LEVEL)}% interval] from a bootstrap over seeds (B = {d.b}, RNG seed {d.rng_seed}, "
+              "expanded percentile intervals); **\\*** = the interval excludes 0. A run without a value for a "
+              "measure (no conflict met: no TTC; the junction not cleared) leaves that seed out of that measure. "
+              "A collision or near miss is 0/1 per run, so its mean is a share of runs.", ""]
+    for name in MEASURES:
+        lines += [f"### {DRIVING_LABELS[name]}", "",
+                  f"| point | method | mean | {DRIVING_BASELINE} | difference [{int(100 * LEVEL)}% CI] | seeds |",
+                  "|---|---|---|---|---|---|"]
+        for v in d.versus:
+            pr = v.measures[name]
+            where = ", ".join(f"{k}={t}" for k, t in zip((a.key for a in d.axes), v.point.texts, strict=True)
+                              if k != METHOD_KEY) or "-"
+            lines.append(f"| {where} | {v.method} | {_num(pr.mean)} | {_num(pr.twin_mean)} | "
+                         f"{_cell(pr.diff, signed=True)} | {pr.n} |")
+        lines.append("")
+    return lines
+
+
 def sweep_md(meta: dict, axes: Sequence[Axis], rows: Sequence[Row], stats: Sequence[PointStats],
-             failed: Sequence[dict], pngs: Sequence[str]) -> str:
+             failed: Sequence[dict], pngs: Sequence[str], driving: DrivingStudy | None = None) -> str:
     methods = methods_of(rows)
     lines = [f"# v2vsim sweep: {meta['scenario_name']}", ""]
     seeds = meta["seeds"]
@@ -222,6 +261,8 @@ def sweep_md(meta: dict, axes: Sequence[Axis], rows: Sequence[Row], stats: Seque
         lines += ["## Results", ""]
         for metric in STAT_METRICS:
             lines += _metric_tables("point", [("(no grid)", index.get(((), metric)))], "", metric, methods)
+    if driving is not None:  # only then: an open-loop sweep's report is unchanged
+        lines += driving_md(driving)
     other = [c for c in metric_columns(rows) if c not in STAT_METRICS]
     lines += ["## Other metrics (mean over seeds)", "", "| point | method | " + " | ".join(other) + " |",
               "|---|---|" + "---|" * len(other)]

@@ -8,6 +8,8 @@ metrics with 95% bootstrap intervals (DESIGN.md "Studies, channel and environmen
     DIR/sweep.json              grid, seeds, frames, rows, statistics, failed and degraded runs
     DIR/sweep.md                per swept key: mean [95% CI] per method and point, paired differences
     DIR/sweep_<key>_<metric>.png
+    DIR/sweep_driving_<key>.png a closed-loop sweep's collisions, near misses and min TTC per control.method;
+                                sweep.json and sweep.md then also compare each method with `none` by seed
 
 A degraded run (it went through every frame, but lost agents or scored nothing for a method:
 v2vsim.evaluation.status) is no failure: its rows are in sweep.csv and sweep.json with its status, but the
@@ -153,7 +155,8 @@ def sweep(args: SweepArgs, start: Callable[[RunSpec], Job] | None = None, stream
 
 def write_outputs(args: SweepArgs, d: Design, results: Sequence[RunResult], interrupted: bool) -> list[Path]:
     """sweep.csv, sweep.json, sweep.md and the plots from the runs that completed."""
-    from v2vsim.study.plots import plot_all
+    from v2vsim.study.driving import driving_study, has_driving
+    from v2vsim.study.plots import plot_all, plot_driving
     from v2vsim.study.summary import STAT_METRICS, point_stats, sweep_json, sweep_md, write_csv, write_json
 
     order = {s.out: i for i, s in enumerate(d.specs)}
@@ -161,6 +164,8 @@ def write_outputs(args: SweepArgs, d: Design, results: Sequence[RunResult], inte
     rows = collect(results)
     kept = counted(rows, args.include_degraded)  # what the statistics, tables and plots take
     stats = [s for m in STAT_METRICS for s in point_stats(kept, d.points, m, args.bootstrap, DEFAULT_RNG_SEED)]
+    # closed loop only (any run drove a vehicle): an open-loop sweep's files stay as they were
+    driving = driving_study(kept, d.axes, d.points, args.bootstrap, DEFAULT_RNG_SEED) if has_driving(rows) else None
     failed = [{"point": ", ".join(r.spec.grid), "seed": r.spec.seed, "code": r.code, "why": r.why,
                "tail": list(r.tail), "log": str(r.spec.out / LOG)} for r in results if not r.ok]
     degraded = [{"point": ", ".join(r.spec.grid), "seed": r.spec.seed, "status": r.status,
@@ -181,6 +186,8 @@ def write_outputs(args: SweepArgs, d: Design, results: Sequence[RunResult], inte
     paths = [out / "sweep.csv", out / "sweep.json", out / "sweep.md"]
     write_csv(paths[0], d.axes, rows)
     pngs = plot_all(out, d.axes, methods_of(kept), stats, d.name) if kept else []
-    write_json(paths[1], sweep_json(meta, d.axes, rows, stats, out) | {"plots": [p.name for p in pngs]})
-    paths[2].write_text(sweep_md(meta, d.axes, kept, stats, failed, [p.name for p in pngs]))
+    if driving is not None:
+        pngs += plot_driving(out, driving, d.name)
+    write_json(paths[1], sweep_json(meta, d.axes, rows, stats, out, driving) | {"plots": [p.name for p in pngs]})
+    paths[2].write_text(sweep_md(meta, d.axes, kept, stats, failed, [p.name for p in pngs], driving))
     return paths + pngs
