@@ -24,8 +24,10 @@ def eye_over(static: StaticMap) -> rrb.EyeControls3D:
                              kind="Orbital", tracking_entity="world/ego")
 
 
-def default_blueprint(methods: list[str], cameras: list[str], static: StaticMap, method_tab: int = 0) -> rrb.Blueprint:
-    """method_tab: which of the method tabs is shown first (0 probability, 1 errors)."""
+def default_blueprint(methods: list[str], cameras: list[str], static: StaticMap, method_tab: int = 0,
+                      closed_loop: bool = False) -> rrb.Blueprint:
+    """method_tab: which of the method tabs is shown first (0 probability, 1 errors). closed_loop: a tab with the
+    driven vehicle's speed, planned speed and closest gap (Recorder.log_drive)."""
     world = rrb.Spatial3DView(origin="world", name="world (3D: x east, y north, z up)", eye_controls=eye_over(static))
     gt = rrb.Spatial2DView(origin="bev", contents=["bev/gt/**"], name="ground truth (BEV, ego heading up)")
     cams = rrb.Grid(*[rrb.Spatial2DView(origin=f"world/ego_cameras/{c}", name=f"ego camera: {c}") for c in cameras],
@@ -38,7 +40,9 @@ def default_blueprint(methods: list[str], cameras: list[str], static: StaticMap,
         rrb.TimeSeriesView(origin="links/age_ms", name="age of fused messages (ms)",
                            plot_legend=rrb.PlotLegend(corner="LeftTop", visible=True)),
         rrb.TimeSeriesView(origin="links/delivered", name="link delivery (fraction so far)",
-                           plot_legend=rrb.PlotLegend(corner="LeftBottom", visible=True)))
+                           plot_legend=rrb.PlotLegend(corner="LeftBottom", visible=True)),
+        *([rrb.TimeSeriesView(origin="drive", name="driving: speed, planned speed (m/s), closest gap (m)",
+                              plot_legend=rrb.PlotLegend(corner="LeftTop", visible=True))] if closed_loop else []))
     left = rrb.Vertical(world, rrb.Horizontal(gt, cams, column_shares=[1, 1.3]), row_shares=[3, 2])
     right = rrb.Vertical(rrb.Tabs(_method_grid(methods, "probability", "vehicle probability"),
                                   _method_grid(methods, "errors", "errors (TP green, FP red, FN blue)"),

@@ -49,11 +49,12 @@ class Recorder:
         self.rig = camera_rig(sc.sensors.cameras)
         self.delivered: dict[str, list[int]] = {}  # sender -> [delivered, events]
         self.rec = rr.RecordingStream("v2vsim", recording_id=f"{sc.name}-{sc.seed}-{ego}", batcher_config=BATCHING)
-        self.rec.save(path, default_blueprint=default_blueprint(methods, list(self.rig.names), static))
+        self.rec.save(path, default_blueprint=default_blueprint(methods, list(self.rig.names), static,
+                                                                closed_loop=sc.control is not None))
         self._last_ttc: float | None = None  # closed loop: the SSM reading logged last (log_drive marks changes)
-        self._log_static(static)
+        self._log_static(static, sc)
 
-    def _log_static(self, static: StaticMap) -> None:
+    def _log_static(self, static: StaticMap, sc: Scenario) -> None:
         log = self.rec.log
         log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         log("world/map/ground", world3d.ground_mesh(static), static=True)
@@ -69,6 +70,10 @@ class Recorder:
             log(f"bev/{m}", rr.AnnotationContext(bev.ERROR_CLASSES), static=True)
             log(f"metrics/iou_vehicle/{m}", rr.SeriesLines(colors=METHOD_PALETTE[i % len(METHOD_PALETTE)], names=m,
                                                           widths=2.0), static=True)
+        if sc.control is not None:  # the closed loop's plots (log_drive)
+            for name, colour in (("speed", (44, 160, 44)), ("planned_speed", (255, 127, 14)),
+                                 ("min_gap_m", (214, 39, 40))):
+                log(f"drive/{name}", rr.SeriesLines(colors=colour, names=name, widths=2.0), static=True)
         for cav in self.cavs:
             colour = world3d.cav_colour(self.cavs, cav)
             log(f"links/latency_ms/{cav}", rr.SeriesPoints(colors=colour, names=cav, markers="circle",
