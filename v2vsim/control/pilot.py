@@ -92,7 +92,7 @@ class Pilot:
                      if np.hypot(o.x - me.pose.x, o.y - me.pose.y) > max(SELF_M, me.extent[0] / 2))
         self.tracks, self._next_id = track(self.tracks, seen, self.dt, self._next_id)
         route = RouteAhead(path=state.path, speed_limit=state.speed_limit, stop_m=state.stop_m,
-                           conflict_zone=state.conflict_zone)
+                           conflict_zone=state.conflict_zone, red_m=state.red_m)
         p = plan(me.pose, me.speed, me.extent[0], route, self.tracks, self.cfg, self.dt)
         others = [a for a in world.actors if a.id != self.me]
         phantom = False

@@ -32,6 +32,7 @@ class RouteAhead:
     speed_limit: float
     stop_m: float | None  # distance along path to the stop line where it must yield (None: priority, or passed it)
     conflict_zone: np.ndarray | None  # (K, 2) world polygon of the junction area it crosses next (None: past it)
+    red_m: float | None = None  # distance along path to a traffic light showing red or amber (None: none ahead)
 
 
 @dataclass(frozen=True)
@@ -207,6 +208,8 @@ def plan(pose: Pose, speed: float, length: float, route: RouteAhead, tracks: tup
             blocker = find_blocker(pose, length, route, tracks, cfg)
             if blocker is not None:
                 terms.append(_Term(idm_acceleration(v, cfg, v0, line_gap, v), "yield", blocker[0]))
+    if route.red_m is not None:  # a red (or amber) light: its stop line is a standing leader, whatever the traffic
+        terms.append(_Term(idm_acceleration(v, cfg, v0, max(route.red_m, _MIN_GAP_FOR_IDM_M), v), "red_light", None))
     win = min(terms, key=lambda term: term.accel)  # min keeps the first of equal ones: (a) before (b)
     a = min(max(win.accel, -cfg.max_decel), cfg.max_accel)
     new_speed = v + a * dt

@@ -13,8 +13,9 @@ and what SUMO measures of their safety.
   crossing encounter may log nothing (DESIGN.md domain notes): the ego's trajectory-based measures stand beside it
   (v2vsim/control/measures.py).
 - The planner may know its own route (map knowledge, not perception): `observe` gives each driven vehicle's path
-  ahead, the stop line where it must yield (a link without priority: SUMO's state 'm' or lower case) and the
-  outline of the junction it crosses next.
+  ahead, the stop line where it must yield (a link without priority: SUMO's state 'm' or lower case), the
+  outline of the junction it crosses next, and the distance to a traffic light showing red or amber (a driven
+  vehicle is told the signal, as a connected vehicle would be by SPaT, and stops for it).
 """
 
 from __future__ import annotations
@@ -120,8 +121,15 @@ class DrivenVehicles:
             out.append(DrivenState(
                 id=v, path=path, speed_limit=float(ls.lane.getMaxSpeed(ls.vehicle.getLaneID(v))), stop_m=stop_m,
                 conflict_zone=zone, in_junction=in_junction, odometer_m=float(ls.vehicle.getDistance(v)),
-                collisions=tuple(sorted(set(hits.get(v, ())))), ssm=self._ssm(ls, v)))
+                collisions=tuple(sorted(set(hits.get(v, ())))), ssm=self._ssm(ls, v), red_m=self._red(ls, v)))
         return tuple(out)
+
+    @staticmethod
+    def _red(ls: ModuleType, v: str) -> float | None:
+        """Distance to the next traffic light's stop line while it shows red or amber (r, y, u: red-amber)."""
+        for _tls, _index, dist, state in ls.vehicle.getNextTLS(v):
+            return float(dist) if state in "rRyYu" and dist <= ZONE_AHEAD_M else None
+        return None
 
     @staticmethod
     def _ssm(ls: ModuleType, v: str) -> tuple[float | None, float | None, float | None]:

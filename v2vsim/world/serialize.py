@@ -28,7 +28,7 @@ def _rounded(points: np.ndarray | None) -> list | None:
 def _driven_to_json(d: DrivenState) -> dict:
     return {"id": d.id, "path": _rounded(d.path), "speed_limit": d.speed_limit, "stop_m": d.stop_m,
             "conflict_zone": _rounded(d.conflict_zone), "in_junction": d.in_junction, "odometer_m": d.odometer_m,
-            "collisions": list(d.collisions), "ssm": list(d.ssm)}
+            "collisions": list(d.collisions), "ssm": list(d.ssm), "red_m": d.red_m}
 
 
 def _driven_from_json(doc: dict) -> DrivenState:
@@ -50,7 +50,8 @@ def _driven_from_json(doc: dict) -> DrivenState:
     return DrivenState(id=str(doc["id"]), path=path, speed_limit=float(doc["speed_limit"]),
                        stop_m=opt(doc["stop_m"]), conflict_zone=points(doc["conflict_zone"]),
                        in_junction=bool(doc["in_junction"]), odometer_m=float(doc["odometer_m"]),
-                       collisions=tuple(str(c) for c in doc["collisions"]), ssm=(ssm[0], ssm[1], ssm[2]))
+                       collisions=tuple(str(c) for c in doc["collisions"]), ssm=(ssm[0], ssm[1], ssm[2]),
+                       red_m=opt(doc.get("red_m")))
 
 
 def world_to_bytes(world: WorldState) -> bytes:

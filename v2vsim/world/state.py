@@ -66,6 +66,7 @@ class DrivenState:
     conflict_zone: (K, 2) outline of the junction it crosses next or is in (None: past it).
     collisions: the vehicles SUMO found it touching at this step.
     ssm: SUMO's SSM device so far (min TTC s, max DRAC m/s^2, min PET s); None where no encounter measured one.
+    red_m: distance along its lane(s) to the next traffic light's stop line while it shows red or amber.
     """
 
     id: str
@@ -77,6 +78,7 @@ class DrivenState:
     odometer_m: float
     collisions: tuple[str, ...] = ()
     ssm: tuple[float | None, float | None, float | None] = (None, None, None)
+    red_m: float | None = None  # distance to the next traffic light if it shows red or amber (None: no such light)
 
 
 @dataclass(frozen=True)

@@ -204,3 +204,17 @@ def test_rays_and_the_grown_polygon() -> None:
     # Passing 1.5 m beside the square's side: inside the margin, so a hit where the ray meets the grown side.
     assert np.isclose(ray_to_grown_polygon(square, 2.0, np.array([11.5, -20.0]), np.array([0.0, 1.0])),
                       20.0 - math.sqrt(4.0 - 1.5**2))
+
+
+def test_stops_at_a_red_light_whatever_the_traffic() -> None:
+    cfg = PlannerConfig()
+    ego_x, v = 0.0, 12.0
+    reasons = set()
+    for _ in range(200):  # 20 s with the light red 40 m ahead of the bumper's start, no other vehicle
+        front = ego_x + EGO_LEN / 2
+        route = RouteAhead(np.array([[front, 0.0], [front + 300.0, 0.0]]), 13.9, None, None, red_m=40.0 - front)
+        p = plan(Pose(ego_x, 0.0, 0.0, 0.0), v, EGO_LEN, route, (), cfg, DT)
+        reasons.add(p.reason)
+        ego_x += p.speed * DT
+        v = p.speed
+    assert v < 0.05 and 0.0 < 40.0 - (ego_x + EGO_LEN / 2) < 3.0 and "red_light" in reasons
