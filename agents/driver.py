@@ -129,7 +129,7 @@ def drive(args: AgentArgs, bus: Bus) -> int:
 
     timer = StageTimer()
     ssm_file = str(Path(args.out) / "ssm.xml") if closed_loop and args.out else None
-    backend = make_backend(sc, ssm_file=ssm_file)
+    backend = make_backend(sc, ssm_file=ssm_file, closed_loop=closed_loop)
     try:
         world = backend.reset()
         static = static_to_bytes(backend.static)

@@ -5,6 +5,8 @@ it, and each world says what the planner may know of its route and what SUMO mea
 from __future__ import annotations
 
 import hashlib
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -37,7 +39,7 @@ def test_without_control_the_worlds_are_bit_for_bit_those_of_before() -> None:
 def test_a_driven_vehicle_follows_its_commands_and_reports_its_route(tmp_path: Path) -> None:
     sc = load_scenario(T_JUNCTION, ["control.method=none", "duration_s=6"])
     ssm = tmp_path / "ssm.xml"
-    with make_backend(sc, ssm_file=str(ssm)) as b:
+    with make_backend(sc, ssm_file=str(ssm), closed_loop=True) as b:
         w = b.reset()
         (d,) = w.driven
         assert d.id == "cav0" and d.path.shape[1] == 2 and len(d.path) > 10
@@ -69,3 +71,13 @@ def test_bad_control_settings_are_one_line_errors(override: str, key: str) -> No
     with pytest.raises(ConfigError) as e:
         load_scenario(T_JUNCTION, [*base, override])
     assert f": {key}:" in str(e.value) and "\n" not in str(e.value)
+
+
+def test_only_the_run_s_driver_may_start_a_closed_loop_backend(tmp_path: Path) -> None:
+    """`v2vsim frame`, `dataset` and the env step the backend without commanding anyone: the driven vehicle would
+    hold its speed for ever, so a control section there is a one-line error, exit 2."""
+    with pytest.raises(ConfigError, match="control: a closed loop runs only in"):
+        make_backend(load_scenario(T_JUNCTION, ["control.method=none"]))
+    done = subprocess.run([sys.executable, "-m", "v2vsim.cli", "frame", str(T_JUNCTION), "--at", "0", "--out",
+                           str(tmp_path), "--set", "control.method=none"], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr

@@ -24,7 +24,7 @@ def _drive(method: str, seed: int) -> dict:
     sc = load_scenario(OCCLUDED, [f"control.method={method}", f"seed={seed}", "perception.methods=[none]"])
     pilot = Pilot(sc, "cav0")
     plans: dict[int, float] = {}
-    with make_backend(sc) as b:
+    with make_backend(sc, closed_loop=True) as b:
         w = b.reset()
         for k in range(sc.frames):
             step = pilot.step(w, None)  # no prediction: oracle reads the world, `none` gets nothing
