@@ -144,14 +144,55 @@ def time_to_zone(t: Track, zone: np.ndarray, cfg: PlannerConfig) -> float:
     return dist / max(cfg.unknown_speed_mps, 1e-3)
 
 
+PREDICT_STEP_S = 0.1  # time step of a foe's constant-velocity prediction (time_to_path)
+CONFLICT_STEP_M = 1.0  # spacing of the points of the ego's path inside the junction (conflict_points)
+
+
+def conflict_points(route: RouteAhead, cfg: PlannerConfig) -> np.ndarray:
+    """(C, 2) points every CONFLICT_STEP_M of the ego's path that lie in the conflict zone grown by zone_margin_m:
+    the part of the junction the ego will sweep. Empty when the path does not enter it."""
+    if route.conflict_zone is None or len(route.path) < 2:
+        return np.zeros((0, 2))
+    seg = np.linalg.norm(np.diff(route.path, axis=0), axis=1)
+    s = np.r_[0.0, np.cumsum(seg)]
+    at = np.arange(0.0, s[-1] + 1e-9, CONFLICT_STEP_M)
+    pts = np.stack([np.interp(at, s, route.path[:, 0]), np.interp(at, s, route.path[:, 1])], axis=1)
+    return pts[in_grown_polygon(route.conflict_zone, cfg.zone_margin_m, pts)]
+
+
+def time_to_path(t: Track, points: np.ndarray, cfg: PlannerConfig) -> float:
+    """Seconds until the track comes within reach of the ego's path through the junction (`points`): its centre
+    within corridor_half_width_m + its length / 2 of a point (0 already there; inf not within gap_acceptance_s).
+
+    Constant velocity over the gap-acceptance horizon; a track slower than min_moving_mps stands; a new track
+    (velocity unknown) drives at unknown_speed_mps along its yaw, either way, the sooner arrival. Unlike the whole
+    junction outline, this lets the ego go past a vehicle that waits in another part of the junction."""
+    reach = cfg.corridor_half_width_m + t.length / 2
+    taus = np.arange(0.0, cfg.gap_acceptance_s + 1e-9, PREDICT_STEP_S)
+    if t.age > 1:
+        speed = math.hypot(t.vx, t.vy)
+        velocities = [np.array([t.vx, t.vy]) if speed >= cfg.min_moving_mps else np.zeros(2)]
+    else:
+        heading = cfg.unknown_speed_mps * np.array([math.cos(t.yaw), math.sin(t.yaw)])
+        velocities = [heading, -heading]
+    best = math.inf
+    for v in velocities:
+        at = np.array([t.x, t.y]) + taus[:, None] * v  # [T, 2]
+        near = (np.linalg.norm(at[:, None, :] - points[None, :, :], axis=-1) <= reach).any(axis=1)  # [T]
+        if near.any():
+            best = min(best, float(taus[int(np.argmax(near))]))
+    return best
+
+
 def find_blocker(pose: Pose, length: float, route: RouteAhead, tracks: tuple[Track, ...],
                  cfg: PlannerConfig) -> tuple[Track, float] | None:
-    """The foe that makes the gap unacceptable, with its time to the zone (the soonest one), or None.
+    """The foe that makes the gap unacceptable, with its time to the ego's path (the soonest one), or None.
 
-    A foe blocks when it is inside the grown conflict zone, or reaches it in less than gap_acceptance_s. Not foes:
-    a track within 1 m of the ego's centre (the ego itself), traffic behind the ego's front bumper in its own lane
-    (it cannot reach the junction first, and would otherwise hold the ego up for as long as it queues behind),
-    and traffic ahead in its own lane going its way (term (a) follows it).
+    A foe blocks when it is on the ego's path through the junction (the path's points in the grown conflict zone),
+    or reaches it in less than gap_acceptance_s (time_to_path; the zone itself when the path does not enter it).
+    Not foes: a track within 1 m of the ego's centre (the ego itself), traffic behind the ego's front bumper in its
+    own lane (it cannot reach the junction first, and would otherwise hold the ego up for as long as it queues
+    behind), and traffic ahead in its own lane going its way (term (a) follows it).
     """
     zone = route.conflict_zone
     if zone is None or not tracks:
@@ -162,6 +203,7 @@ def find_blocker(pose: Pose, length: float, route: RouteAhead, tracks: tuple[Tra
     if has_path:
         s, lat, tangent = project_onto_polyline(route.path, xy)
         path_len = polyline_length(route.path)
+    points = conflict_points(route, cfg)
     best: tuple[Track, float] | None = None
     for i, t in enumerate(tracks):
         bx, by = float(body[i, 0]), float(body[i, 1])
@@ -172,7 +214,7 @@ def find_blocker(pose: Pose, length: float, route: RouteAhead, tracks: tuple[Tra
             continue
         if has_path and _leaves_to_car_following(t, float(s[i]), float(lat[i]), tangent[i], path_len, cfg):
             continue
-        tt = time_to_zone(t, zone, cfg)
+        tt = time_to_path(t, points, cfg) if len(points) else time_to_zone(t, zone, cfg)
         if tt < cfg.gap_acceptance_s and (best is None or tt < best[1]):
             best = (t, tt)
     return best

@@ -58,6 +58,9 @@ def _drive(ego_v: float, others: list[tuple[float, float, float, float, float]],
     return out
 
 
+_REACH = PlannerConfig().corridor_half_width_m + 4.5 / 2  # a foe this close to the ego's path is on it
+
+
 def _gap(step: _Step, i: int = 0) -> float:
     """Bumper-to-bumper gap from the ego to other vehicle i ahead of it on the x axis."""
     return step.others[i][0] - 4.5 / 2 - (step.ego_x + EGO_LEN / 2)
@@ -86,13 +89,13 @@ def test_stops_behind_a_perceived_standing_obstacle() -> None:
 
 
 def test_yields_to_a_crossing_vehicle_whose_gap_is_too_short() -> None:
-    """12 m/s from 30 m below the zone (2.3 s to the zone grown by 2 m < 5 s): the ego brakes for the line, is
-    still short of it when the crossing vehicle has left the zone, then goes."""
+    """12 m/s from 30 m below the zone (2.2 s to within reach of the ego's path < 5 s): the ego brakes for the
+    line, is still short of it when the crossing vehicle has left its path, then goes."""
     cfg = PlannerConfig()
     foe = (LINE_X + 5.0, -5.0 - 30.0, math.pi / 2, 0.0, 12.0)
     steps = _drive(10.0, [foe], 10.0, cfg, junction=True)
     assert steps[0].plan.reason == "yield" and steps[0].plan.obstacle is not None
-    clear_t = (5.0 + cfg.zone_margin_m - foe[1]) / 12.0  # the foe's centre leaves the grown zone
+    clear_t = (_REACH - foe[1]) / 12.0  # the foe's centre is out of reach of the ego's path (y = 0) again
     waiting = [s for k, s in enumerate(steps) if k * DT < clear_t]
     assert max(s.ego_x + EGO_LEN / 2 for s in waiting) < LINE_X  # never past the line while the foe is in the way
     assert all(s.plan.reason == "yield" for s in waiting[1:])
@@ -105,7 +108,7 @@ def test_stops_at_the_line_for_a_stream_of_crossing_vehicles() -> None:
     cfg = PlannerConfig()
     stream = [(LINE_X + 5.0, -35.0 - 20.0 * j, math.pi / 2, 0.0, 12.0) for j in range(6)]
     steps = _drive(10.0, stream, 16.0, cfg, junction=True)
-    last_clear_t = (5.0 + cfg.zone_margin_m - stream[-1][1]) / 12.0
+    last_clear_t = (_REACH - stream[-1][1]) / 12.0
     waiting = [s for k, s in enumerate(steps) if k * DT < last_clear_t]
     assert all(s.plan.speed >= 0.0 and s.plan.accel >= -cfg.max_decel - 1e-9 for s in steps)
     assert max(s.ego_x + EGO_LEN / 2 for s in waiting) < LINE_X
@@ -218,3 +221,14 @@ def test_stops_at_a_red_light_whatever_the_traffic() -> None:
         ego_x += p.speed * DT
         v = p.speed
     assert v < 0.05 and 0.0 < 40.0 - (ego_x + EGO_LEN / 2) < 3.0 and "red_light" in reasons
+
+
+def test_a_vehicle_waiting_in_the_junction_blocks_only_on_the_ego_s_path() -> None:
+    """The ego's path crosses the zone along y = 0. A standing vehicle in the zone 4.5 m to its side (waiting to
+    turn, say) leaves it room; one standing across its path does not."""
+    cfg = PlannerConfig()
+    aside = (LINE_X + 5.0, 4.5, 0.0, 0.0, 0.0)
+    across = (LINE_X + 5.0, 0.5, math.pi / 2, 0.0, 0.0)
+    assert all(s.plan.reason != "yield" for s in _drive(8.0, [aside], 3.0, cfg, junction=True))
+    blocked = _drive(8.0, [across], 6.0, cfg, junction=True)
+    assert blocked[-1].plan.reason == "yield" and blocked[-1].ego_x + EGO_LEN / 2 < LINE_X
