@@ -53,9 +53,9 @@ def _cell(values: list[float]) -> str:
     iv = interval([[v] for v in values], label="closed-loop")
     if iv is None:
         return "-"
-    if iv.low is None or iv.high is None:
+    if iv.lo is None or iv.hi is None:
         return f"{iv.mean:.2f}"
-    return f"{iv.mean:+.2f} [{iv.low:+.2f}, {iv.high:+.2f}]" + (" *" if iv.low > 0 or iv.high < 0 else "")
+    return f"{iv.mean:+.2f} [{iv.lo:+.2f}, {iv.hi:+.2f}]" + (" *" if iv.lo > 0 or iv.hi < 0 else "")
 
 
 def main() -> None:
@@ -105,18 +105,19 @@ def main() -> None:
             if mine:
                 print(f"| {m} | {lat:g} | " + " | ".join(cells) + " |")
     if a.plot is not None:
-        fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+        fig, axes = plt.subplots(1, 3, figsize=(15, 4))
         for m in methods:
             xs = [lat for lat in latencies if (m, lat) in by]
             for ax, name, label in ((axes[0], "either", "share of runs with a collision or near miss"),
-                                    (axes[1], "min_gap_m", "closest gap to any vehicle (m)")):
+                                    (axes[1], "min_ttc_s", "SSM min TTC (s), runs with a conflict"),
+                                    (axes[2], "phantom_braking", "phantom-braking onsets per run")):
                 ys, lo, hi = [], [], []
                 for lat in xs:
                     vals = [s[name] for s in by[(m, lat)].values() if s[name] is not None]
                     iv = interval([[v] for v in vals], label=f"{m}{lat}{name}")
                     ys.append(iv.mean if iv else float("nan"))
-                    lo.append(iv.mean - iv.low if iv and iv.low is not None else 0.0)
-                    hi.append(iv.high - iv.mean if iv and iv.high is not None else 0.0)
+                    lo.append(iv.mean - iv.lo if iv and iv.lo is not None else 0.0)
+                    hi.append(iv.hi - iv.mean if iv and iv.hi is not None else 0.0)
                 ax.errorbar(xs, ys, yerr=[lo, hi], marker="o", capsize=3, label=m)
                 ax.set_xlabel("added V2V latency (ms)")
                 ax.set_ylabel(label)
