@@ -33,6 +33,8 @@ from v2vsim.perception.build import (
     compress,
     wire_ratio,
 )
+from v2vsim.perception.device import prepare as prepare_device
+from v2vsim.perception.device import resolve_device
 from v2vsim.perception.encode import body_frame_points, late_outputs, pooled_confidence
 from v2vsim.perception.encode import encode as encode_features
 from v2vsim.perception.precision import resolve as resolve_precision
@@ -51,16 +53,21 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
     me = args.cav
     methods = sc.perception.methods
     key = run_signer(args)
-    encoder = build_agent_encoder(sc)
+    # the runner checked the device before starting this process; a remote agent's host may differ (checked again)
+    device = resolve_device(sc.perception.device)
+    prepare_device(device)
+    encoder = build_agent_encoder(sc).to(device)  # the models move once; each inference moves its inputs
     precision = resolve_precision(sc.perception.precision)
     compressor, ratio = build_compressor(sc, encoder.out_channels), wire_ratio(sc)
+    compressor = None if compressor is None else compressor.to(device)
     late = "late" in methods
     # comm.share topk: the CAV ranks its cells by its own single-agent confidence; an ego keeps its whole map
     share = sc.comm.share.fraction if sc.comm.share.policy == "topk" and me not in args.egos else 1.0
     # its own single-agent model (late fusion's checkpoint is none's): decoded once a frame for both uses
     single = None
     if late or share < 1.0:
-        single = build_method_models(sc, encoder, ("late",) if late else ("none",))["late" if late else "none"]
+        name = "late" if late else "none"
+        single = build_method_models(sc, encoder, (name,))[name].to(device)
     static = static_from_bytes(bus.fetch("static", "main", START_TIMEOUT_S))
     assets = build_map_assets(static)
     realtime = sc.transport.clock == "realtime"

@@ -57,6 +57,8 @@ from v2vsim.perception.build import (
     runnable_methods,
     wire_ratio,
 )
+from v2vsim.perception.device import device_record, resolve_device
+from v2vsim.perception.device import prepare as prepare_device
 from v2vsim.perception.extrapolate import extrapolate_features
 from v2vsim.perception.precision import resolve as resolve_precision
 from v2vsim.recording.messages import MessageTape
@@ -129,11 +131,16 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
     key = run_signer(args)
     kinds = ["features"] + (["points"] if "early" in methods and lidar else []) + (
         ["outputs"] if "late" in methods else [])
-    encoder = encoder if encoder is not None else build_agent_encoder(sc)
+    # checked before any process started (runner, evaluate); again here, where the models will run
+    device = resolve_device(sc.perception.device)
+    prepare_device(device)
+    encoder = (encoder if encoder is not None else build_agent_encoder(sc)).to(device)
     precision = resolve_precision(sc.perception.precision)
-    models = build_method_models(sc, encoder, runnable_methods(sc))
+    # every model moves to the device once; each inference moves its inputs and brings its outputs to the host
+    models = {m: model.to(device) for m, model in build_method_models(sc, encoder, runnable_methods(sc)).items()}
     # comm.compensation: each intermediate method whose zoo ships a trained extrapolation (never a random one)
-    extrapolations = {m: e for m in models if sc.comm.compensation and (e := build_extrapolation(sc, m)) is not None}
+    extrapolations = {m: e.to(device) for m in models
+                      if sc.comm.compensation and (e := build_extrapolation(sc, m)) is not None}
     static_bytes = bus.fetch("static", "main", START_TIMEOUT_S)
     static = static_from_bytes(static_bytes)
     # the map rasters for the ground truth: one set for every replay of a recording in this process
@@ -141,6 +148,7 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
               else replay.once_per_recording("map_assets", partial(build_map_assets, static)))
     c, f = encoder.out_channels, encoder.out_cells
     compressor, ratio = build_compressor(sc, c), wire_ratio(sc)
+    compressor = None if compressor is None else compressor.to(device)
     decoder = EgoDecoder(ego_wire_spec(sc, c, f, ratio), args.run_id, frozenset(args.cavs), key)
     # a compressed wire: the ego's own CAV also hands it its map uncompressed ("own"), which it fuses as its own
     own_decoder = None if compressor is None else EgoDecoder({"features": ego_wire_spec(sc, c, f, 1)["features"]},
@@ -203,7 +211,8 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
                          untrained=all(v is None for v in checkpoints.values()), checkpoints=checkpoints,
                          skipped=[m for m in methods if m not in models],
                          compensation=compensation_schemes(sc, list(models), extrapolations),
-                         grid_cells=f, channels=c, wire_ratio=ratio)
+                         grid_cells=f, channels=c, wire_ratio=ratio,
+                         device=device_record(sc.perception.device, device))
     tape = MessageTape(out_dir / "messages", sc, run_id=args.run_id, run_instance=args.run_instance, ego=me,
                        cavs=list(args.cavs), frames=args.frames, kinds=kinds,
                        side=[*side, *(["own"] if own_decoder is not None else [])],

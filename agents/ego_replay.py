@@ -192,15 +192,15 @@ class ReplayBus:
         return memo
 
     def _model_id(self, model: nn.Module) -> bytes:
-        """A digest of the model's class and every parameter and buffer: two replays' copies of one checkpoint
-        match, anything else does not."""
+        """A digest of the model's class and every parameter and buffer, and the device each sits on: two replays'
+        copies of one checkpoint on one device match, anything else does not (a GPU rounds otherwise than the CPU)."""
         got = self._model_ids.get(id(model))
         if got is None:
             h = hashlib.sha1(f"{type(model).__qualname__} {getattr(model, 'bev_size_m', None)} {model!r}".encode())
             for name, t in [*model.named_parameters(), *model.named_buffers()]:  # non-persistent buffers too
                 h.update(name.encode())
-                h.update(str(t.dtype).encode() + str(tuple(t.shape)).encode())
-                h.update(t.detach().reshape(-1).contiguous().view(torch.uint8).numpy().tobytes())
+                h.update(str(t.dtype).encode() + str(tuple(t.shape)).encode() + str(t.device).encode())
+                h.update(t.detach().reshape(-1).contiguous().view(torch.uint8).cpu().numpy().tobytes())
             got = self._model_ids[id(model)] = h.digest()
         return got
 

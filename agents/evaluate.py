@@ -199,7 +199,8 @@ def _prepare(rec: Recording, recorded: int, overrides: list[str], out: Path, fra
                               "sweep)")
     defaults = resolved_keys(Scenario())  # a key added since the recording was made: it ran with the default
     for key in sorted(set(before) | set(now)):
-        if key in ("output.record_messages",) or receiver_side(key):
+        # perception.device: where this replay's ego infers (the CAVs' side is in the recording, whatever it ran on)
+        if key in ("output.record_messages", "perception.device") or receiver_side(key):
             continue
         if before.get(key, defaults.get(key)) != now.get(key):
             if key in files and now.get(key) and _same_file(now[key], files[key]["sha256"]):

@@ -72,7 +72,13 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def cmd_agent(args: argparse.Namespace) -> int:
-    load_scenario(args.scenario, args.overrides)  # a clear error before anything starts
+    sc = load_scenario(args.scenario, args.overrides)  # a clear error before anything starts
+    from v2vsim.perception.device import resolve_device
+
+    try:  # this host's devices: the runner that printed this command checked its own
+        resolve_device(sc.perception.device)
+    except ConfigError as e:
+        raise ConfigError(f"{sc.source}: {e}") from None
     from agents.cav import main as cav_main
 
     argv = [args.scenario, "--cav", args.cav, "--run-id", args.run_id, "--cavs", args.cavs, "--egos", args.egos,

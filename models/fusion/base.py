@@ -53,4 +53,5 @@ def check_inputs(features: Tensor, valid_mask: Tensor, channels: int | None = No
 
 def zero_invalid(features: Tensor, valid_mask: Tensor) -> Tensor:
     """Replace absent agents' features by exact zeros (torch.where: no NaN/inf can leak)."""
-    return torch.where(valid_mask[:, :, None, None, None], features, torch.zeros((), dtype=features.dtype))
+    zero = torch.zeros((), dtype=features.dtype, device=features.device)
+    return torch.where(valid_mask[:, :, None, None, None], features, zero)

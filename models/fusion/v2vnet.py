@@ -54,6 +54,6 @@ class V2VNetFusion(FusionModule):
         for _ in range(self.iterations):
             ego_term = F.conv2d(state, w_e, None, padding=1)[:, None]  # [B, 1, C, H, W]
             msgs = F.relu(nb_term + ego_term)  # [B, L-1, C, H, W]
-            msgs = torch.where(nb_valid, msgs, torch.zeros((), dtype=msgs.dtype))
+            msgs = torch.where(nb_valid, msgs, torch.zeros((), dtype=msgs.dtype, device=msgs.device))
             state = self.gru(msgs.sum(dim=1) / count, state)
         return state

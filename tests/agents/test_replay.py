@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 from v2vsim.recording.messages import FORMAT, VERSION, Recording
 
@@ -70,6 +71,18 @@ def _same_as_live(rec: Path, live: dict, out: Path) -> None:
 
 def test_evaluate_over_a_recording_is_the_live_run_bit_for_bit(per_link: tuple[Path, dict], tmp_path: Path) -> None:
     _same_as_live(*per_link, tmp_path / "replay")
+
+
+def test_evaluate_may_move_the_ego_to_another_device(per_link: tuple[Path, dict], tmp_path: Path) -> None:
+    """perception.device is where the replayed ego infers (the CAVs' side is recorded): cpu replays the auto run
+    of this CPU host bit for bit; a CUDA device this host lacks is one line naming the key, exit 2."""
+    rec, live = per_link
+    cpu = _replay(rec, tmp_path / "cpu", "--set", "perception.device=cpu")
+    assert _scores(cpu) == _scores(live) and cpu["device"]["asked"] == "cpu" and cpu["device"]["used"] == "cpu"
+    if not torch.cuda.is_available():
+        r = _cli("evaluate", str(rec), "--out", str(tmp_path / "cuda"), "--set", "perception.device=cuda")
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 2 and len(lines) == 1 and "perception.device: 'cuda' asked" in lines[0], r.stderr
 
 
 def test_the_same_on_a_shared_tr37885_medium_with_compensation(tmp_path: Path) -> None:

@@ -4,6 +4,7 @@ metadata says what is allowed; the constants they use."""
 from __future__ import annotations
 
 import dataclasses
+import re
 import typing
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -12,6 +13,7 @@ from models.registry import BUILTIN_METHODS, METHODS  # (imports no torch)
 
 SEED_MAX = 2**31 - 1  # SUMO (libsumo --seed) takes a signed 32-bit seed
 ENCODERS_BY_MODALITY = {"lidar": ("pointpillars",), "camera": ("sinbevt", "lara")}
+DEVICE_PATTERN = re.compile(r"auto|cpu|cuda(:\d+)?")  # perception.device (v2vsim.perception.device resolves it)
 
 
 # ---- field helpers: metadata says what is allowed -------------------------------------------
@@ -253,6 +255,10 @@ class PerceptionConfig:
     # the models' forward passes (v2vsim.perception.precision): auto = bf16 autocast where the CPU has native
     # bfloat16 (AMX, AVX-512 BF16), fp32 elsewhere; metrics.json says which ran
     precision: Literal["auto", "fp32", "bf16"] = "fp32"
+    # where each process's models run (v2vsim.perception.device): auto = the GPU where torch sees one, else the CPU
+    # (so a CPU host runs exactly as before); whether the host has the device is checked before any process starts
+    # (the loader imports no torch); metrics.json "device" says what ran
+    device: str = _f("auto", "auto, cpu, cuda or cuda:N", lambda v: DEVICE_PATTERN.fullmatch(v) is not None)
 
 
 @dataclass(frozen=True)

@@ -14,6 +14,7 @@ from v2vsim.evaluation.block_bootstrap import LEVEL, REPLICATES, paired_differen
 from v2vsim.evaluation.metrics import MethodScore, neighbour_shares, paired_counts
 from v2vsim.evaluation.run_plots import distance_bins, plot
 from v2vsim.evaluation.status import explain
+from v2vsim.perception.device import device_line
 from v2vsim.perception.precision import resolve as resolve_precision
 
 # CoBEVT paper figures (DESIGN.md "Reference figures"): OPV2V camera IoU vehicle/road/lane, LiDAR AP@0.7.
@@ -55,6 +56,8 @@ class RunSummary:
     channels: int = 0  # C of the encoder's feature map
     wire_ratio: int = 1  # channel compression of the feature messages: C / r channels on the wire
     driving: dict | None = None  # closed loop: metrics.json `driving` (v2vsim.control.measures.driving_block)
+    # where the ego's models ran: metrics.json `device` (v2vsim.perception.device.device_record); None: not said
+    device: dict[str, str] | None = None
 
 
 def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: CommStats,
@@ -92,6 +95,9 @@ def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: Comm
         "trust": sc.comm.auth.mode,
         # the models' forward passes on this host (v2vsim.perception.precision); remote CAVs resolve 'auto' on theirs
         "precision": {"asked": sc.perception.precision, "used": resolve_precision(sc.perception.precision)},
+        # where the ego's models ran (v2vsim.perception.device): asked, used ("cpu" or "cuda:N"), that device's name;
+        # the CAVs resolve perception.device on their own hosts
+        "device": summary.device,
         "neighbours_in_range": neighbour_shares(summary.neighbours, sc.cavs.count),
         "ap_sort": sc.evaluation.ap_sort,
         "pipeline": sc.transport.pipeline,
@@ -183,6 +189,8 @@ def report_md(doc: dict, summary: RunSummary) -> str:
                  f"clock {sc.transport.clock}, real-time factor {doc['real_time_factor']}.")
     lines += ["", f"**{why}**", ""] if (why := explain(doc["status"])) else [""]
     lines += [TRUST_LINES[sc.comm.auth.mode], ""]
+    if summary.device is not None:
+        lines += [device_line(summary.device), ""]
     lines.append(f"Scenario `{sc.source}`, seed {sc.seed}" + (
         ", overrides: " + " ".join(f"`--set {o}`" for o in sc.overrides) if sc.overrides else ", no overrides") + ".")
     if summary.grid_cells:

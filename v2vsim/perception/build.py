@@ -30,6 +30,7 @@ from models.extrapolation import FeatureExtrapolation
 from models.presets import get_preset
 from models.registry import MODALITY, is_intermediate, is_plugin, plugin_weights
 from v2vsim.config import ConfigError, Scenario, check_plugins
+from v2vsim.perception.device import model_device, resolve_device, to_host
 
 
 def zoo_for(sc: Scenario) -> tuple[Path, dict] | None:
@@ -231,6 +232,10 @@ def runnable_methods(sc: Scenario) -> tuple[str, ...]:
 
 def check_scenario(sc: Scenario) -> None:
     """Model-dependent checks the schema cannot make; ConfigError before any process starts."""
+    try:  # the loader imports no torch: whether this host has the device asked for is known only here
+        resolve_device(sc.perception.device)
+    except ConfigError as e:
+        raise ConfigError(f"{sc.source}: {e}") from None
     check_plugins(sc)
     channels = get_preset(sc.perception.preset).channels
     ratio = wire_ratio(sc)
@@ -286,15 +291,18 @@ def build_compressor(sc: Scenario, channels: int) -> ChannelCompressor | None:
 
 @torch.no_grad()
 def compress(comp: ChannelCompressor | None, features: np.ndarray) -> np.ndarray:
-    """Sender side: [C, F, F] -> [C/r, F, F] (unchanged without compression)."""
-    return features if comp is None else comp.compress(torch.from_numpy(features)[None])[0].numpy()
+    """Sender side: [C, F, F] -> [C/r, F, F] (unchanged without compression), on the compressor's device, back on
+    the host for the wire."""
+    if comp is None:
+        return features
+    return to_host(comp.compress(torch.from_numpy(features)[None].to(model_device(comp)))[0])
 
 
 @torch.no_grad()
 def decompress(comp: ChannelCompressor | None, payload: np.ndarray) -> np.ndarray:
-    """Receiver side: [C/r, F, F] -> [C, F, F] float32."""
+    """Receiver side: [C/r, F, F] -> [C, F, F] float32, on the compressor's device, back on the host."""
     x = payload.astype(np.float32)
-    return x if comp is None else comp.decompress(torch.from_numpy(x)[None])[0].numpy()
+    return x if comp is None else to_host(comp.decompress(torch.from_numpy(x)[None].to(model_device(comp)))[0])
 
 
 def build_method_models(sc: Scenario, encoder: nn.Module, methods: tuple[str, ...]) -> dict[str, nn.Module]:

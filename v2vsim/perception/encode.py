@@ -1,5 +1,6 @@
 """The CAV side of perception: one CAV's sensor frame encoded into BEV features, and its own decoded
-outputs (the late-fusion message, the confidence a CAV ranks its cells by)."""
+outputs (the late-fusion message, the confidence a CAV ranks its cells by). Each model runs on the device its
+weights sit on (v2vsim.perception.device); what these functions return is numpy on the host."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from torch import Tensor, nn
 
 from models.heads import decode_detections, segmentation_probabilities
 from v2vsim.config import Scenario
+from v2vsim.perception.device import model_device, to_host
 from v2vsim.perception.precision import Precision, autocast
 from v2vsim.sensors.sensing import SensorFrame
 
@@ -36,20 +38,24 @@ def encode(encoder: nn.Module, sf: SensorFrame, sc: Scenario, precision: Precisi
     """[C, F, F] float32 BEV features of one CAV in its own frame."""
     if sc.perception.modality == "lidar":
         return encode_points(encoder, body_frame_points(sf, sc), precision)
-    with autocast(precision):
-        return encoder(*encoder_inputs(sf, sc))[0].float().numpy()
+    device = model_device(encoder)
+    with autocast(precision, device.type):
+        return to_host(encoder(*(t.to(device) for t in encoder_inputs(sf, sc)))[0].float())
 
 
 @torch.no_grad()
 def encode_points(encoder: nn.Module, points: np.ndarray, precision: Precision = "fp32") -> np.ndarray:
     """A LiDAR encoder on one body-frame cloud [P, 4] -> [C, F, F] float32 features."""
-    with autocast(precision):
-        return encoder([torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32))])[0].float().numpy()
+    device = model_device(encoder)
+    cloud = torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32)).to(device)
+    with autocast(precision, device.type):
+        return to_host(encoder([cloud])[0].float())
 
 
 def heads_float(model: nn.Module, fused: Tensor, precision: Precision) -> dict[str, Tensor]:
-    """The heads on a fused map [B, C, F, F], every output back in float32."""
-    with autocast(precision):
+    """The heads on a fused map [B, C, F, F] (on the model's device), every output back in float32 and left on
+    that device."""
+    with autocast(precision, fused.device.type):
         out = model.heads(fused)
     return {k: v.float() for k, v in out.items()}
 
@@ -59,12 +65,13 @@ def late_outputs(model: nn.Module, features: np.ndarray, boxes: bool = True,
                  precision: Precision = "fp32") -> tuple[np.ndarray, np.ndarray]:
     """A CAV's own decoded outputs for late fusion: probabilities [3, S, S] (vehicle, road, lane) and
     boxes [K, 6] (x, y, l, w, yaw, score) in its body frame (none decoded with `boxes=False`: [0, 6])."""
-    out = heads_float(model, torch.from_numpy(np.ascontiguousarray(features, dtype=np.float32))[None], precision)
+    fused = torch.from_numpy(np.ascontiguousarray(features, dtype=np.float32))[None].to(model_device(model))
+    out = heads_float(model, fused, precision)
     probs = segmentation_probabilities(out["dynamic"], out["static"])
-    maps = np.stack([probs[k][0].numpy() for k in ("vehicle", "road", "lane")])
+    maps = np.stack([to_host(probs[k][0]) for k in ("vehicle", "road", "lane")])
     found = np.zeros((0, 6), np.float32)
     if boxes and "det_cls" in out:
-        found = decode_detections(out["det_cls"], out["det_reg"], model.anchors)[0].numpy()
+        found = to_host(decode_detections(out["det_cls"], out["det_reg"], model.anchors)[0])
     return maps.astype(np.float32), found.astype(np.float32)
 
 

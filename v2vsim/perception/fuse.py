@@ -1,5 +1,7 @@
 """The ego side of perception: what reached the ego for one frame, fused and decoded with one method
-(warp with each sender's capture pose, fuse, heads) into BEV probabilities and boxes on the ego grid."""
+(warp with each sender's capture pose, fuse, heads) into BEV probabilities and boxes on the ego grid. The models
+run on the device their weights sit on (v2vsim.perception.device); late fusion merges decoded outputs on the
+host; a Prediction is numpy on the host."""
 
 from __future__ import annotations
 
@@ -15,6 +17,7 @@ from models.fusion.early import merge_points_to_ego
 from models.fusion.late import late_fuse_boxes, late_fuse_probabilities
 from models.heads import decode_detections, resize_logits, segmentation_probabilities
 from models.registry import is_intermediate
+from v2vsim.perception.device import model_device, to_host
 from v2vsim.perception.encode import heads_float
 from v2vsim.perception.precision import Precision, autocast
 
@@ -132,24 +135,25 @@ def predict(method: str, model: nn.Module, inp: FusionInputs, cells: int,
             per = [torch.from_numpy(table[s][1]) for s in names]
             boxes = late_fuse_boxes(per, poses, valid, extent_m=model.bev_size_m).numpy()
         return Prediction(probs, boxes, (time.perf_counter() - t0) * 1000)
-    if method == "early":
+    device = model_device(model)
+    if method == "early":  # the clouds are merged on the host, the merged one encoded on the device
         clouds = [torch.from_numpy(table[s]) for s in names]
-        merged = merge_points_to_ego(clouds, _poses(inp, names, kind))
-        with autocast(precision):
+        merged = merge_points_to_ego(clouds, _poses(inp, names, kind)).to(device)
+        with autocast(precision, device.type):
             fused = model.encoder([merged])
     elif not kind:  # none: the ego's own map
-        fused = torch.from_numpy(table[ego])[None]
+        fused = torch.from_numpy(table[ego])[None].to(device)
     else:
-        feats = torch.from_numpy(np.stack([table[s] for s in names]))  # [L, C, F, F]
-        valid = torch.ones(1, len(names), dtype=torch.bool)
-        with autocast(precision):
-            fused = model.fuse(feats[None], _poses(inp, names, kind)[None], valid)
+        feats = torch.from_numpy(np.stack([table[s] for s in names])).to(device)  # [L, C, F, F]
+        valid = torch.ones(1, len(names), dtype=torch.bool, device=device)
+        with autocast(precision, device.type):
+            fused = model.fuse(feats[None], _poses(inp, names, kind)[None].to(device), valid)
     t_fused = time.perf_counter()
     out = heads_float(model, fused, precision)
     dyn, stat = resize_logits(out["dynamic"], cells), resize_logits(out["static"], cells)
-    probs = {k: v[0].numpy() for k, v in segmentation_probabilities(dyn, stat).items()}
+    probs = {k: to_host(v[0]) for k, v in segmentation_probabilities(dyn, stat).items()}
     boxes = None
     if "det_cls" in out:
-        boxes = decode_detections(out["det_cls"], out["det_reg"], model.anchors)[0].numpy()
+        boxes = to_host(decode_detections(out["det_cls"], out["det_reg"], model.anchors)[0])
     t_end = time.perf_counter()
     return Prediction(probs, boxes, (t_end - t0) * 1000, (t_end - t_fused) * 1000)

@@ -36,8 +36,9 @@ def resolve(asked: str) -> Precision:
     return asked  # type: ignore[return-value]
 
 
-def autocast(precision: Precision) -> contextlib.AbstractContextManager:
-    """The context a model's forward pass runs in: bfloat16 autocast on the CPU, or nothing."""
+def autocast(precision: Precision, device_type: str = "cpu") -> contextlib.AbstractContextManager:
+    """The context a model's forward pass runs in: bfloat16 autocast on the device type the model sits on ("cpu"
+    or "cuda": an autocast for the other type would leave the model's ops in float32), or nothing."""
     if precision == "bf16":
-        return torch.autocast("cpu", dtype=torch.bfloat16)
+        return torch.autocast(device_type, dtype=torch.bfloat16)
     return contextlib.nullcontext()
