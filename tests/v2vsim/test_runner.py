@@ -195,7 +195,7 @@ class FakeBus:
 def test_driver_stops_when_every_ego_is_gone(clock: str, monkeypatch: pytest.MonkeyPatch,
                                              capsys: pytest.CaptureFixture[str]) -> None:
     sc = load_scenario(SCENARIO, [f"transport.clock={clock}", "rate_hz=1000", "cavs.count=2"])
-    monkeypatch.setattr(driver, "make_backend", lambda sc: FakeBackend())
+    monkeypatch.setattr(driver, "make_backend", lambda sc, **kw: FakeBackend())
     monkeypatch.setattr(driver, "static_to_bytes", lambda static: b"static")
     monkeypatch.setattr(driver, "world_to_bytes", lambda world: b"world")
     args = AgentArgs(scenario=sc, scenario_path=str(SCENARIO), overrides=(), run_id="r1", listen="", peers=(),
