@@ -2,7 +2,7 @@
 and an optional second sweep with comm.compensation on, each driving measure per (method, latency) and its
 difference to `none` at the same latency, paired by seed, with the sweeps' own 95 % bootstrap interval.
 
-    python scripts/closed_loop_table.py --sweep runs/study46/latency [--comp runs/study46/compensation] \
+    python scripts/closed_loop_table.py --sweep runs/study46/latency [runs/study46/more] [--comp DIR] \
         --plot docs/img/closed_loop_latency.png
 """
 
@@ -60,11 +60,13 @@ def _cell(values: list[float]) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--sweep", type=Path, required=True)
+    ap.add_argument("--sweep", type=Path, nargs="+", required=True, help="one or more sweeps (their seeds add up)")
     ap.add_argument("--comp", type=Path)
     ap.add_argument("--plot", type=Path)
     a = ap.parse_args()
-    runs = read(a.sweep, "")
+    runs: dict[tuple[str, float, int], dict[str, float | None]] = {}
+    for sweep in a.sweep:
+        runs |= read(sweep, "")
     if a.comp is not None and (a.comp / "sweep.csv").is_file():
         runs |= read(a.comp, "+comp")
     methods = list(dict.fromkeys(m for m, _, _ in runs))
@@ -122,8 +124,8 @@ def main() -> None:
                 ax.set_xlabel("added V2V latency (ms)")
                 ax.set_ylabel(label)
         axes[0].legend(fontsize=8)
-        fig.suptitle(f"Closed loop on t_junction_occluded: safety against latency ({len({s for *_, s in runs})} "
-                     "held-out seeds, 95 % bootstrap intervals)")
+        fig.suptitle("Closed loop on t_junction_occluded: safety against latency (held-out seeds "
+                     f"{min(s for *_, s in runs)}-{max(s for *_, s in runs)}, 95 % bootstrap intervals)")
         fig.tight_layout()
         a.plot.parent.mkdir(parents=True, exist_ok=True)
         fig.savefig(a.plot, dpi=110)
