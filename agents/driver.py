@@ -54,12 +54,13 @@ def drive(args: AgentArgs, bus: Bus) -> int:
         if sender not in egos:
             return
         try:
-            frame = int(json.loads(payload)["frame"])
+            doc = json.loads(payload)
+            frame = int(doc["frame"])
         except (ValueError, KeyError, TypeError):
             raise RejectedMessage("bad_header", "an ack without a frame") from None
         if frame > published[0]:
             raise RejectedMessage("out_of_window", f"ack for frame {frame}, the newest published is {published[0]}")
-        command = json.loads(payload).get("command")
+        command = doc.get("command")
         if command is not None and closed_loop:
             try:
                 accel = float(command["accel"])

@@ -161,7 +161,8 @@ class DrivenVehicles:
         zone = None
         stop_m = None
         if in_junction or ahead <= ZONE_AHEAD_M:
-            zone = np.asarray(node.getShape(), dtype=np.float64)[:, :2] if node.getShape() else None
+            shape = node.getShape()
+            zone = np.asarray(shape, dtype=np.float64)[:, :2] if shape else None
         if not in_junction and links and not links[0][1] and ahead <= ZONE_AHEAD_M:
             stop_m = ahead  # the first link has no priority: yield at the end of this lane
         return path, stop_m, zone, in_junction
