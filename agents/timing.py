@@ -17,14 +17,22 @@ from pathlib import Path
 
 
 class StageTimer:
-    """Summed wall time per stage; `split()` is ms per frame over the frames counted so far."""
+    """Summed wall time per stage; `split()` is ms per frame over the frames counted so far. Also the process's
+    CPU time (every thread, user + system) from its first timed stage on: on a loaded machine a stage's wall time
+    includes the time the process waited for a core, its CPU time does not."""
 
     def __init__(self) -> None:
         self.total_ms: dict[str, float] = defaultdict(float)
         self.frames = 0
+        self._cpu0: float | None = None  # process CPU seconds when the first stage began (start-up excluded)
+
+    def _start_cpu(self) -> None:
+        if self._cpu0 is None:
+            self._cpu0 = cpu_s()
 
     @contextmanager
     def stage(self, name: str) -> Iterator[None]:
+        self._start_cpu()
         t0 = time.perf_counter()
         try:
             yield
@@ -32,6 +40,7 @@ class StageTimer:
             self.total_ms[name] += (time.perf_counter() - t0) * 1000
 
     def add(self, name: str, ms: float) -> None:
+        self._start_cpu()
         self.total_ms[name] += ms
 
     def frame_done(self) -> None:
@@ -45,9 +54,21 @@ class StageTimer:
         """ms per frame of the process's own work (every stage but the waits)."""
         return round(sum(v for k, v in self.split().items() if not k.startswith("wait")), 3)
 
+    def cpu_ms(self) -> float | None:
+        """CPU milliseconds per frame (all threads) since the first stage; None before any."""
+        if self._cpu0 is None:
+            return None
+        return round((cpu_s() - self._cpu0) * 1000 / max(self.frames, 1), 3)
+
     def to_json(self) -> dict:
         return {"frames": self.frames, "ms_per_frame": self.split(), "compute_ms_per_frame": self.compute_ms(),
-                "peak_rss_mib": peak_rss_mib()}
+                "cpu_ms_per_frame": self.cpu_ms(), "peak_rss_mib": peak_rss_mib()}
+
+
+def cpu_s() -> float:
+    """This process's CPU seconds so far, every thread, user + system."""
+    ru = resource.getrusage(resource.RUSAGE_SELF)
+    return ru.ru_utime + ru.ru_stime
 
 
 def peak_rss_mib() -> float:

@@ -23,18 +23,29 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[2]
 
 
-def run_once(scenario: str, frames: int, pipeline: int, overrides: list[str], out: Path) -> dict:
-    cmd = [sys.executable, "-m", "v2vsim.cli", "run", scenario, "--frames", str(frames), "--out", str(out),
-           "--set", f"transport.pipeline={pipeline}"]
-    for o in overrides:
-        cmd += ["--set", o]
-    print(f"bench run: pipeline {pipeline}: {' '.join(cmd[3:])}", file=sys.stderr, flush=True)
+def run_command(scenario: str, frames: int, extra: list[str], out: Path) -> dict:
+    """`v2vsim run SCENARIO --frames N --out OUT EXTRA...`; its metrics.json and every timing/*.json."""
+    cmd = [sys.executable, "-m", "v2vsim.cli", "run", scenario, "--frames", str(frames), "--out", str(out), *extra]
+    print(f"bench: {' '.join(cmd[3:])}", file=sys.stderr, flush=True)
     rc = subprocess.run(cmd, cwd=REPO).returncode
     if rc != 0:
-        raise SystemExit(f"bench run: `v2vsim run` exited with {rc}")
+        raise SystemExit(f"bench: `v2vsim run` exited with {rc}")
     metrics = json.loads((out / "metrics.json").read_text())
     timing = {p.stem: json.loads(p.read_text()) for p in sorted((out / "timing").glob("*.json"))}
     return {"metrics": metrics, "timing": timing}
+
+
+def run_once(scenario: str, frames: int, pipeline: int, overrides: list[str], out: Path) -> dict:
+    return run_command(scenario, frames, ["--set", f"transport.pipeline={pipeline}",
+                                          *(a for o in overrides for a in ("--set", o))], out)
+
+
+def cpu_per_frame(res: dict) -> dict[str, float]:
+    """CPU ms per frame of each process (every thread, user + system, from its first frame on; the ego's from
+    metrics.json, the others' from timing/*.json); processes that did not say are left out."""
+    out = {"ego": res["metrics"]["timing"].get("cpu_ms_per_frame")}
+    out |= {name: t.get("cpu_ms_per_frame") for name, t in res["timing"].items()}
+    return {k: v for k, v in out.items() if v is not None}
 
 
 def summary_row(pipeline: int, res: dict) -> dict:
@@ -42,8 +53,13 @@ def summary_row(pipeline: int, res: dict) -> dict:
     ego = m["timing"]
     compute = ego["compute_ms_per_frame"]
     wall = m["wall_s"]
+    cpu = cpu_per_frame(res)
+    cpu_total = sum(cpu.values())
+    wall_ms = 1000 * wall / max(m["frames"], 1)
     return {"pipeline": pipeline, "frames": m["frames"], "wall_s": wall, "rtf": m["real_time_factor"],
-            "ego_compute_ms": compute, "ratio": wall / max(compute * m["frames"] / 1000, 1e-9)}
+            "ego_compute_ms": compute, "ratio": wall / max(compute * m["frames"] / 1000, 1e-9),
+            "cpu_ms_per_frame": round(cpu_total, 1), "cores_busy": round(cpu_total / max(wall_ms, 1e-9), 2),
+            "cpu_by_process": cpu}
 
 
 def split_table(res: dict) -> list[tuple[str, dict[str, float]]]:
@@ -58,11 +74,12 @@ def split_table(res: dict) -> list[tuple[str, dict[str, float]]]:
 
 
 def print_report(rows: list[dict], results: dict[int, dict]) -> None:
-    print("\n| pipeline | frames | wall s | real-time factor | ego compute ms/frame | wall / (ego compute x frames) |")
-    print("|---|---|---|---|---|---|")
+    print("\n| pipeline | frames | wall s | real-time factor | ego compute ms/frame | wall / (ego compute x frames) "
+          "| CPU ms/frame, all processes | cores busy |")
+    print("|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['pipeline']} | {r['frames']} | {r['wall_s']:.1f} | {r['rtf']:.3f}x | {r['ego_compute_ms']:.1f} "
-              f"| {r['ratio']:.2f} |")
+              f"| {r['ratio']:.2f} | {r['cpu_ms_per_frame']:.0f} | {r['cores_busy']:.2f} |")
     for p, res in results.items():
         print(f"\nframe split, pipeline {p} (ms per frame; wait* = waiting for others):\n")
         tables = split_table(res)
@@ -73,6 +90,9 @@ def print_report(rows: list[dict], results: dict[int, dict]) -> None:
             print(f"| {s} | " + " | ".join(f"{t[s]:.1f}" if s in t else "" for _, t in tables) + " |")
         print("| **compute total** | " + " | ".join(
             f"{sum(v for k, v in t.items() if not k.startswith('wait')):.1f}" for _, t in tables) + " |")
+        cpu = cpu_per_frame(res)
+        print("| **CPU (all threads)** | " + " | ".join(
+            f"{cpu[name]:.1f}" if name in cpu else "" for name, _ in tables) + " |")
 
 
 def _stage_order(stage: str) -> tuple[int, str]:

@@ -1,0 +1,31 @@
+"""agents.timing: a process's CPU time per frame counts its own work from the first frame on, not its start-up
+and not the time it waited."""
+
+from __future__ import annotations
+
+import time
+
+from agents.timing import StageTimer
+
+
+def _spin(seconds: float) -> None:
+    end = time.process_time() + seconds
+    while time.process_time() < end:
+        pass
+
+
+def test_cpu_per_frame_counts_work_not_waits_nor_start_up() -> None:
+    timer = StageTimer()
+    _spin(0.2)  # start-up: before the first stage, not counted
+    assert timer.cpu_ms() is None and timer.to_json()["cpu_ms_per_frame"] is None
+    for _ in range(2):
+        with timer.stage("wait"):
+            time.sleep(0.1)  # waiting costs no CPU
+        with timer.stage("fusion"):
+            _spin(0.05)
+        timer.frame_done()
+    cpu = timer.cpu_ms()
+    assert cpu is not None and 45 <= cpu < 90, cpu  # 50 ms of work a frame, neither the sleep nor the 200 ms
+    doc = timer.to_json()
+    assert doc["cpu_ms_per_frame"] == cpu or abs(doc["cpu_ms_per_frame"] - cpu) < 5
+    assert doc["ms_per_frame"]["wait"] >= 95  # the wall time still says where the frame went
