@@ -61,6 +61,7 @@ from v2vsim.perception.device import device_record, resolve_device
 from v2vsim.perception.device import prepare as prepare_device
 from v2vsim.perception.extrapolate import extrapolate_features
 from v2vsim.perception.precision import resolve as resolve_precision
+from v2vsim.perception.threads import fusion_pool, fusion_threads
 from v2vsim.recording.messages import MessageTape
 from v2vsim.recording.scan import max_scan_bytes
 from v2vsim.sensors.scene import MapAssets, build_map_assets
@@ -222,6 +223,9 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
     timer = StageTimer()
     after = AfterFusion(scores, recorder, timer)
     memo = None if replay is None else replay.prediction_memo(precision, sc.bev.cells)
+    # replays keep one method at a time: several replays share a process and its cores (agents.ego_replay)
+    threads = fusion_threads(sc.perception.fusion_threads, len(models)) if replay is None else 1
+    pool = fusion_pool(threads)
     progress_name = f"ego.{me}" if replay is None or replay.label is None else replay.label
     bus.ready()
     t_start = time.monotonic()
@@ -300,7 +304,7 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
                 gt, boxes_gt = (ground_truth(world, me, sc, visible, assets) if replay is None else
                                 replay.once(("ground_truth", me, frozenset(visible)),
                                             partial(ground_truth, world, me, sc, visible, assets)))
-            preds = predict_all(models, inp, sc.bev.cells, precision, memo)
+            preds = predict_all(models, inp, sc.bev.cells, precision, memo, pool)
             for m, pred in preds.items():
                 timer.add(f"fusion.{m}", pred.ms - pred.decode_ms)
                 timer.add(f"decoding.{m}", pred.decode_ms)
@@ -340,12 +344,14 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
             except Exception as e:
                 status = _crashed(f"after frame {k}", e)
                 late_error, code = e, 1
+            if pool is not None:  # a Stop may leave a method running on it: let it end
+                pool.shutdown(wait=True)
             reject_leftovers(box, kinds, inboxes, decoder)
             # a run through every frame that lost agents or scored nothing for a method says so (a replay too:
             # its lost agents are the recording's, from the same frames)
             ious = {m: (s.vehicle.iou, s.vehicle_all.iou, s.road.iou, s.lane.iou) for m, s in scores.items()}
             status = final_status(status, lost, unscored(ious))
-            summary.timing = timer.to_json()
+            summary.timing = timer.to_json() | {"fusion_threads": threads}
             summary.frames = frames_done
             summary.sim_s = (k + 1) / sc.rate_hz
             summary.status = status

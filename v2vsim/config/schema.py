@@ -259,6 +259,9 @@ class PerceptionConfig:
     # (so a CPU host runs exactly as before); whether the host has the device is checked before any process starts
     # (the loader imports no torch); metrics.json "device" says what ran
     device: str = _f("auto", "auto, cpu, cuda or cuda:N", lambda v: DEVICE_PATTERN.fullmatch(v) is not None)
+    # how many methods the ego fuses at once, each on its own thread (every prediction bit-identical to one at a
+    # time; v2vsim.perception.threads): 0 = auto
+    fusion_threads: int = _f(0, "0 (auto) or a positive integer", lambda v: v >= 0)
 
 
 @dataclass(frozen=True)

@@ -9,6 +9,8 @@ the same code given the same FusionInputs (the ego calls its two halves, `predic
 from __future__ import annotations
 
 from collections.abc import Callable
+from concurrent.futures import Executor
+from functools import partial
 
 import numpy as np
 import torch
@@ -38,20 +40,27 @@ model and key (agents.ego_replay.ReplayBus.prediction_memo: replays of one recor
 
 
 def predict_all(models: dict[str, nn.Module], inp: FusionInputs, cells: int,
-                precision: Precision = "fp32", memo: PredictionMemo | None = None) -> dict[str, Prediction]:
-    """Every method's prediction for one frame (methods without input are left out). With `memo`, a prediction
-    from the same model and fusion inputs (fusion_key) is taken from it; its `ms` is that computation's."""
-    preds = {}
+                precision: Precision = "fp32", memo: PredictionMemo | None = None,
+                pool: Executor | None = None) -> dict[str, Prediction]:
+    """Every method's prediction for one frame (methods without input are left out), in `models`' order. With
+    `memo`, a prediction from the same model and fusion inputs (fusion_key) is taken from it; its `ms` is that
+    computation's. With `pool`, the methods run side by side on its threads (torch releases the GIL inside an
+    op): each method's forward pass is the same sequence of ops on the same inputs, so every prediction is
+    bit-identical to a serial run's; only its `ms` (wall time, shared cores) differs."""
     digests: dict[int, bytes] = {}  # each input array hashed once for every method's fusion_key
+    jobs: dict[str, Callable[[], Prediction | None]] = {}
     for m, model in models.items():
         if memo is None:
-            pred = predict(m, model, inp, cells, precision)
-        else:
-            pred = memo(m, model, fusion_key(m, inp, digests),
-                        lambda m=m, model=model: predict(m, model, inp, cells, precision))
-        if pred is not None:
-            preds[m] = pred
-    return preds
+            jobs[m] = partial(predict, m, model, inp, cells, precision)
+        else:  # keys hashed here, in this thread: `digests` is shared by the methods
+            jobs[m] = partial(memo, m, model, fusion_key(m, inp, digests),
+                              partial(predict, m, model, inp, cells, precision))
+    if pool is None:
+        done = {m: job() for m, job in jobs.items()}
+    else:
+        futures = {m: pool.submit(job) for m, job in jobs.items()}
+        done = {m: f.result() for m, f in futures.items()}
+    return {m: pred for m, pred in done.items() if pred is not None}
 
 
 def score_all(preds: dict[str, Prediction], gt: dict[str, np.ndarray], boxes_gt: np.ndarray,
