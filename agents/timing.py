@@ -54,6 +54,16 @@ class StageTimer:
         """ms per frame of the process's own work (every stage but the waits)."""
         return round(sum(v for k, v in self.split().items() if not k.startswith("wait")), 3)
 
+    def method_ms(self) -> dict[str, float]:
+        """Each fusion method's fusion + decoding ms summed so far (the ego's stages "fusion.M", "decoding.M"):
+        which methods take longest."""
+        out: dict[str, float] = defaultdict(float)
+        for k, v in self.total_ms.items():
+            stage, _, method = k.partition(".")
+            if method and stage in ("fusion", "decoding"):
+                out[method] += v
+        return dict(out)
+
     def cpu_ms(self) -> float | None:
         """CPU milliseconds per frame (all threads) since the first stage; None before any."""
         if self._cpu0 is None:

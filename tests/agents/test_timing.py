@@ -29,3 +29,11 @@ def test_cpu_per_frame_counts_work_not_waits_nor_start_up() -> None:
     doc = timer.to_json()
     assert doc["cpu_ms_per_frame"] == cpu or abs(doc["cpu_ms_per_frame"] - cpu) < 5
     assert doc["ms_per_frame"]["wait"] >= 95  # the wall time still says where the frame went
+
+
+def test_method_ms_sums_each_methods_fusion_and_decoding() -> None:
+    timer = StageTimer()
+    for stage, ms in (("fusion.cobevt", 60.0), ("decoding.cobevt", 10.0), ("fusion.none", 1.0), ("comm", 5.0),
+                      ("decoding.none", 9.0), ("wait", 300.0)):
+        timer.add(stage, ms)
+    assert timer.method_ms() == {"cobevt": 70.0, "none": 10.0}

@@ -8,7 +8,7 @@ the same code given the same FusionInputs (the ego calls its two halves, `predic
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from concurrent.futures import Executor
 from functools import partial
 
@@ -41,12 +41,14 @@ model and key (agents.ego_replay.ReplayBus.prediction_memo: replays of one recor
 
 def predict_all(models: dict[str, nn.Module], inp: FusionInputs, cells: int,
                 precision: Precision = "fp32", memo: PredictionMemo | None = None,
-                pool: Executor | None = None) -> dict[str, Prediction]:
+                pool: Executor | None = None, cost: Mapping[str, float] | None = None) -> dict[str, Prediction]:
     """Every method's prediction for one frame (methods without input are left out), in `models`' order. With
     `memo`, a prediction from the same model and fusion inputs (fusion_key) is taken from it; its `ms` is that
     computation's. With `pool`, the methods run side by side on its threads (torch releases the GIL inside an
     op): each method's forward pass is the same sequence of ops on the same inputs, so every prediction is
-    bit-identical to a serial run's; only its `ms` (wall time, shared cores) differs."""
+    bit-identical to a serial run's; only its `ms` (wall time, shared cores) differs. `cost`: each method's expected
+    ms (e.g. its mean so far), so that the pool starts the longest first and no thread is left with a long one at
+    the end (the returned dict keeps `models`' order either way)."""
     digests: dict[int, bytes] = {}  # each input array hashed once for every method's fusion_key
     jobs: dict[str, Callable[[], Prediction | None]] = {}
     for m, model in models.items():
@@ -58,8 +60,10 @@ def predict_all(models: dict[str, nn.Module], inp: FusionInputs, cells: int,
     if pool is None:
         done = {m: job() for m, job in jobs.items()}
     else:
-        futures = {m: pool.submit(job) for m, job in jobs.items()}
-        done = {m: f.result() for m, f in futures.items()}
+        costs = cost or {}
+        first = sorted(jobs, key=lambda m: -costs.get(m, 0.0))  # stable: models' order among equals
+        futures = {m: pool.submit(jobs[m]) for m in first}
+        done = {m: futures[m].result() for m in jobs}
     return {m: pred for m, pred in done.items() if pred is not None}
 
 
