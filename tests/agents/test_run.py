@@ -425,8 +425,11 @@ def test_lockstep_runs_are_deterministic_for_a_seed_pipelined_or_not(tmp_path: P
             "--set", "comm.drop.p=0.3", "--set", "comm.latency_ms={mean: 20, jitter: 30}",
             "--set", "comm.fusion_deadline_ms=50", "--set", "comm.compensation=true",
             "--set", "comm.pose_noise={xy_std_m: 0.3, yaw_std_deg: 1.0}", "--set", "output.rerun=false"]
-    a = Run(*args, "--set", "transport.pipeline=0", "--out", str(tmp_path / "a"))
-    b = Run(*args, "--set", "transport.pipeline=3", "--out", str(tmp_path / "b"))
+    # ... and one method at a time or all three at once (perception.fusion_threads): the same predictions
+    a = Run(*args, "--set", "transport.pipeline=0", "--set", "perception.fusion_threads=1",
+            "--out", str(tmp_path / "a"))
+    b = Run(*args, "--set", "transport.pipeline=3", "--set", "perception.fusion_threads=3",
+            "--out", str(tmp_path / "b"))
     assert a.finish() == 0 and b.finish() == 0, "".join(a.log + b.log)
     ma, mb = _metrics(tmp_path / "a"), _metrics(tmp_path / "b")
     assert (ma["pipeline"], mb["pipeline"]) == (0, 3)
@@ -440,6 +443,10 @@ def test_lockstep_runs_are_deterministic_for_a_seed_pipelined_or_not(tmp_path: P
     assert {"fusion.cobevt", "decoding.cobevt", "scoring", "ground_truth"} <= set(ma["timing"]["ms_per_frame"])
     cav = json.loads((tmp_path / "b" / "timing" / "cav.cav1.json").read_text())
     assert cav["frames"] == 10 and {"sensing", "encoding", "comm"} <= set(cav["ms_per_frame"])
+    # ... and the CPU it spent per frame (bench run and bench fleet sum these); the ego says how many methods it
+    # fused at once
+    assert cav["cpu_ms_per_frame"] > 0 and ma["timing"]["cpu_ms_per_frame"] > 0
+    assert (ma["timing"]["fusion_threads"], mb["timing"]["fusion_threads"]) == (1, 3)
 
 
 def test_realtime_clock_runs_on_the_wall_clock(tmp_path: Path) -> None:

@@ -94,6 +94,10 @@ def plot(rows: list[dict], path: Path) -> None:
         a.plot(n, [r["rtf"] for r in rs], "o-", label=methods)
         b.plot(n, [r["cpu_ms_per_frame"] for r in rs], "o-", label=f"{methods}: all processes")
         b.plot(n, [r["ego_cpu_ms"] or 0 for r in rs], "s--", label=f"{methods}: ego")
+    first = min(rows, key=lambda r: (r["methods"] != rows[0]["methods"], r["cavs"]))
+    ns = sorted({r["cavs"] for r in rows})
+    b.plot(ns, [first["cpu_ms_per_frame"] * n / first["cavs"] for n in ns], ":", color="grey",
+           label=f"linear in CAVs (from {first['methods']}, {first['cavs']})")
     for ax in (a, b):
         ax.set_xscale("log", base=2)
         ax.set_xticks([r["cavs"] for r in rows], [str(r["cavs"]) for r in rows])
