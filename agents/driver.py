@@ -32,6 +32,30 @@ MAX_COMMAND_MPS2 = 50.0  # a commanded acceleration beyond this is no plan: refu
 HANG_TIMEOUT_S = 120.0  # no ack for this long ends the run (exit 1, why on stderr); the ego waits 60 s for a CAV
 
 
+
+def parse_ack(payload: bytes, published: int, closed_loop: bool) -> tuple[int, float | None]:
+    """An ego's ack: (the frame it fused, the acceleration its planner commanded on it, None without one or in
+    an open loop). RejectedMessage (counted by the Bus, never fatal) for an ack without a frame, one for a frame
+    not published yet (`published`: the newest on the bus), or a command that is no acceleration in
+    [-MAX_COMMAND_MPS2, MAX_COMMAND_MPS2] (NaN and infinities included)."""
+    try:
+        doc = json.loads(payload)
+        frame = int(doc["frame"])
+    except (ValueError, KeyError, TypeError):
+        raise RejectedMessage("bad_header", "an ack without a frame") from None
+    if frame > published:
+        raise RejectedMessage("out_of_window", f"ack for frame {frame}, the newest published is {published}")
+    command = doc.get("command")
+    if command is None or not closed_loop:
+        return frame, None
+    try:
+        accel = float(command["accel"])
+    except (KeyError, TypeError, ValueError):
+        raise RejectedMessage("bad_header", "a command without an acceleration") from None
+    if not -MAX_COMMAND_MPS2 <= accel <= MAX_COMMAND_MPS2:  # NaN fails this too
+        raise RejectedMessage("bad_header", f"a commanded acceleration of {accel} m/s^2")
+    return frame, accel
+
 def drive(args: AgentArgs, bus: Bus) -> int:
     sc = args.scenario
     frames = args.frames or sc.frames
@@ -53,21 +77,8 @@ def drive(args: AgentArgs, bus: Bus) -> int:
         # the Bus (control_rejections, in timing/driver.json), never fatal.
         if sender not in egos:
             return
-        try:
-            doc = json.loads(payload)
-            frame = int(doc["frame"])
-        except (ValueError, KeyError, TypeError):
-            raise RejectedMessage("bad_header", "an ack without a frame") from None
-        if frame > published[0]:
-            raise RejectedMessage("out_of_window", f"ack for frame {frame}, the newest published is {published[0]}")
-        command = doc.get("command")
-        if command is not None and closed_loop:
-            try:
-                accel = float(command["accel"])
-            except (KeyError, TypeError, ValueError):
-                raise RejectedMessage("bad_header", "a command without an acceleration") from None
-            if not -MAX_COMMAND_MPS2 <= accel <= MAX_COMMAND_MPS2:  # NaN fails this too
-                raise RejectedMessage("bad_header", f"a commanded acceleration of {accel} m/s^2")
+        frame, accel = parse_ack(payload, published[0], closed_loop)
+        if accel is not None:
             with plans_lock:  # the ego plans its own vehicle, and only that one
                 plans.setdefault(sender, {})[frame] = accel
         acks[sender] = max(acks.get(sender, -1), frame)
