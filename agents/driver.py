@@ -32,7 +32,6 @@ MAX_COMMAND_MPS2 = 50.0  # a commanded acceleration beyond this is no plan: refu
 HANG_TIMEOUT_S = 120.0  # no ack for this long ends the run (exit 1, why on stderr); the ego waits 60 s for a CAV
 
 
-
 def parse_ack(payload: bytes, published: int, closed_loop: bool) -> tuple[int, float | None]:
     """An ego's ack: (the frame it fused, the acceleration its planner commanded on it, None without one or in
     an open loop). RejectedMessage (counted by the Bus, never fatal) for an ack without a frame, one for a frame
@@ -55,6 +54,7 @@ def parse_ack(payload: bytes, published: int, closed_loop: bool) -> tuple[int, f
     if not -MAX_COMMAND_MPS2 <= accel <= MAX_COMMAND_MPS2:  # NaN fails this too
         raise RejectedMessage("bad_header", f"a commanded acceleration of {accel} m/s^2")
     return frame, accel
+
 
 def drive(args: AgentArgs, bus: Bus) -> int:
     sc = args.scenario

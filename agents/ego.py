@@ -304,7 +304,8 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
                 gt, boxes_gt = (ground_truth(world, me, sc, visible, assets) if replay is None else
                                 replay.once(("ground_truth", me, frozenset(visible)),
                                             partial(ground_truth, world, me, sc, visible, assets)))
-            preds = predict_all(models, inp, sc.bev.cells, precision, memo, pool, cost=timer.method_ms())
+            preds = predict_all(models, inp, sc.bev.cells, precision, memo, pool,
+                                cost=None if pool is None else timer.method_ms())
             for m, pred in preds.items():
                 timer.add(f"fusion.{m}", pred.ms - pred.decode_ms)
                 timer.add(f"decoding.{m}", pred.decode_ms)

@@ -17,7 +17,7 @@ import json
 import sys
 from pathlib import Path
 
-from v2vsim.bench.run import cpu_per_frame, run_command
+from v2vsim.bench.run import cpu_per_frame, read_run, run_command, set_args
 
 ALL = "all"  # the scenario's own perception.methods
 
@@ -28,25 +28,17 @@ def _tag(methods: str) -> str:
 
 def run_point(scenario: str, cavs: int, methods: str, frames: int, overrides: list[str], out: Path) -> dict:
     """One run of the grid (or the complete one already in `out`): its metrics.json and timing/*.json."""
-    done = out / "metrics.json"
-    if done.exists():
-        m = json.loads(done.read_text())
+    if (out / "metrics.json").exists():
+        res = read_run(out)
+        m = res["metrics"]
         if m.get("frames") == frames and str(m.get("status", "")).startswith("complete"):
             print(f"bench fleet: {cavs} CAVs, {methods}: complete in {out}, read", file=sys.stderr, flush=True)
-            return {"metrics": m, "timing": _timing(out)}
-    extra = ["--set", f"cavs.count={cavs}", "--set", "output.rerun=false", *overrides_args(overrides)]
+            return res
+    extra = ["--set", f"cavs.count={cavs}", "--set", "output.rerun=false", *set_args(overrides)]
     if methods != ALL:
         extra += ["--methods", methods]
     print(f"bench fleet: {cavs} CAVs, methods {methods}", file=sys.stderr, flush=True)
     return run_command(scenario, frames, extra, out)
-
-
-def overrides_args(overrides: list[str]) -> list[str]:
-    return [a for o in overrides for a in ("--set", o)]
-
-
-def _timing(out: Path) -> dict:
-    return {p.stem: json.loads(p.read_text()) for p in sorted((out / "timing").glob("*.json"))}
 
 
 def fleet_row(cavs: int, methods: str, res: dict) -> dict:

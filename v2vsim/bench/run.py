@@ -30,14 +30,23 @@ def run_command(scenario: str, frames: int, extra: list[str], out: Path) -> dict
     rc = subprocess.run(cmd, cwd=REPO).returncode
     if rc != 0:
         raise SystemExit(f"bench: `v2vsim run` exited with {rc}")
+    return read_run(out)
+
+
+def read_run(out: Path) -> dict:
+    """A finished run's metrics.json and every timing/*.json (by process name)."""
     metrics = json.loads((out / "metrics.json").read_text())
     timing = {p.stem: json.loads(p.read_text()) for p in sorted((out / "timing").glob("*.json"))}
     return {"metrics": metrics, "timing": timing}
 
 
+def set_args(overrides: list[str]) -> list[str]:
+    """KEY=VALUE overrides as `v2vsim run` arguments: --set KEY=VALUE each."""
+    return [a for o in overrides for a in ("--set", o)]
+
+
 def run_once(scenario: str, frames: int, pipeline: int, overrides: list[str], out: Path) -> dict:
-    return run_command(scenario, frames, ["--set", f"transport.pipeline={pipeline}",
-                                          *(a for o in overrides for a in ("--set", o))], out)
+    return run_command(scenario, frames, ["--set", f"transport.pipeline={pipeline}", *set_args(overrides)], out)
 
 
 def cpu_per_frame(res: dict) -> dict[str, float]:

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from v2vsim.bench import fleet
+from v2vsim.bench.run import read_run
 
 
 def _run_dir(out: Path, frames: int = 10, status: str = "complete") -> Path:
@@ -26,8 +27,7 @@ def _run_dir(out: Path, frames: int = 10, status: str = "complete") -> Path:
 
 def test_row_sums_every_process_cpu_and_splits_the_ego(tmp_path: Path) -> None:
     out = _run_dir(tmp_path / "run")
-    row = fleet.fleet_row(2, "none,cobevt", {"metrics": json.loads((out / "metrics.json").read_text()),
-                                             "timing": fleet._timing(out)})
+    row = fleet.fleet_row(2, "none,cobevt", read_run(out))
     assert row["cpu_ms_per_frame"] == 90 + 100 + 120 + 5
     assert row["cav_cpu_ms_mean"] == 110 and row["ego_cpu_ms"] == 90
     assert row["ego_fusion_ms"] == 61 and row["ego_decoding_ms"] == 21

@@ -11,6 +11,7 @@ import torch
 
 from models.build import build_cooperative
 from models.compression import ChannelCompressor
+from tests.v2vsim.perception._clouds import cloud
 from v2vsim.config import ConfigError, load_scenario
 from v2vsim.perception import device as D
 from v2vsim.perception.build import check_scenario, compress, decompress
@@ -73,12 +74,6 @@ def test_model_device_and_prepare_leave_the_cpu_as_it_was() -> None:
                      torch.are_deterministic_algorithms_enabled())
 
 
-def _cloud(n: int = 6000) -> np.ndarray:
-    rng = np.random.default_rng(0)
-    pts = np.concatenate([rng.uniform(-40, 40, (n, 2)), rng.uniform(0, 3, (n, 1)), rng.uniform(0, 1, (n, 1))], 1)
-    return pts.astype(np.float32)
-
-
 def test_models_moved_to_the_cpu_device_compute_bit_for_bit_what_they_did() -> None:
     torch.manual_seed(0)
     before = build_cooperative("pointpillars", "cobevt", "tiny").eval()
@@ -86,9 +81,9 @@ def test_models_moved_to_the_cpu_device_compute_bit_for_bit_what_they_did() -> N
     comp = ChannelCompressor(64, 8).eval()
     comp_moved = copy.deepcopy(comp).to(D.resolve_device("cpu"))
     with torch.no_grad():  # the path before perception.device, spelled out: no device, no copies
-        today = before.encoder([torch.from_numpy(_cloud())])[0].float().numpy()
-    feats = encode_points(before.encoder, _cloud())
-    assert np.array_equal(feats, today) and np.array_equal(encode_points(moved.encoder, _cloud()), today)
+        today = before.encoder([torch.from_numpy(cloud())])[0].float().numpy()
+    feats = encode_points(before.encoder, cloud())
+    assert np.array_equal(feats, today) and np.array_equal(encode_points(moved.encoder, cloud()), today)
     for a, b in zip(late_outputs(before, feats), late_outputs(moved, feats), strict=True):
         assert np.array_equal(a, b)
     wire = compress(comp, feats)

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from models.build import build_cooperative
+from tests.v2vsim.perception._clouds import cloud
 from v2vsim.config import ConfigError, load_scenario
 from v2vsim.perception import precision as P
 from v2vsim.perception.encode import encode_points, late_outputs
@@ -22,16 +23,10 @@ def test_auto_follows_the_cpu_and_a_bad_value_is_named(monkeypatch: pytest.Monke
         load_scenario("scenarios/intersection.yaml", ["perception.precision=fp16"])
 
 
-def _cloud(n: int = 6000) -> np.ndarray:
-    rng = np.random.default_rng(0)
-    pts = np.concatenate([rng.uniform(-40, 40, (n, 2)), rng.uniform(0, 3, (n, 1)), rng.uniform(0, 1, (n, 1))], 1)
-    return pts.astype(np.float32)
-
-
 def test_bf16_changes_the_models_numbers_a_little_and_every_output_stays_float32() -> None:
     torch.manual_seed(0)
     model = build_cooperative("pointpillars", "cobevt", "tiny").eval()
-    feats = {p: encode_points(model.encoder, _cloud(), p) for p in ("fp32", "bf16")}
+    feats = {p: encode_points(model.encoder, cloud(), p) for p in ("fp32", "bf16")}
     assert feats["bf16"].dtype == np.float32 and feats["bf16"].shape == feats["fp32"].shape
     scale = np.abs(feats["fp32"]).max()
     assert 0 < np.abs(feats["bf16"] - feats["fp32"]).max() < 0.1 * scale  # autocast acted (an untrained net: ~6 %)

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from models.build import build_cooperative
+from tests.v2vsim.perception._clouds import cloud
 from v2vsim.config import ConfigError, load_scenario
 from v2vsim.evaluation.fuse_and_score import predict_all
 from v2vsim.perception.encode import encode_points, late_outputs
@@ -26,12 +27,6 @@ def test_auto_is_one_thread_per_core_at_most_one_per_method() -> None:
         load_scenario("scenarios/intersection.yaml", ["perception.fusion_threads=-1"])
 
 
-def _cloud(seed: int, n: int = 4000) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    pts = np.concatenate([rng.uniform(-40, 40, (n, 2)), rng.uniform(0, 3, (n, 1)), rng.uniform(0, 1, (n, 1))], 1)
-    return pts.astype(np.float32)
-
-
 @pytest.mark.parametrize("precision", ["fp32", "bf16"])
 def test_methods_fused_side_by_side_are_bit_identical_to_one_at_a_time(precision: str) -> None:
     torch.set_num_threads(1)  # as in every agent process
@@ -46,7 +41,7 @@ def test_methods_fused_side_by_side_are_bit_identical_to_one_at_a_time(precision
             models[m].encoder = enc
     senders = ["a", "b", "c"]
     inp = FusionInputs(senders=senders, rel_poses=np.array([[0, 0, 0], [6, -2, 0.1], [-9, 4, -0.3]], np.float32))
-    clouds = {s: _cloud(i) for i, s in enumerate(senders)}
+    clouds = {s: cloud(i, n=4000) for i, s in enumerate(senders)}
     inp.points = clouds
     inp.features = {s: encode_points(enc, clouds[s], precision) for s in senders}
     inp.outputs = {s: late_outputs(models["late"], inp.features[s], precision=precision) for s in senders}
