@@ -27,16 +27,18 @@ from v2vsim.comm.control import DRIVER
 from v2vsim.comm.share import feature_message
 from v2vsim.evaluation.gt import visible_actor_ids
 from v2vsim.perception.build import (
-    build_agent_encoder,
+    build_cav_encoder,
     build_compressor,
     build_method_models,
     compress,
+    space_label,
     wire_ratio,
 )
 from v2vsim.perception.device import prepare as prepare_device
 from v2vsim.perception.device import resolve_device
 from v2vsim.perception.encode import body_frame_points, late_outputs, pooled_confidence
 from v2vsim.perception.encode import encode as encode_features
+from v2vsim.perception.fleet import agent_type
 from v2vsim.perception.precision import resolve as resolve_precision
 from v2vsim.recording.scan import encode_scan, world_points
 from v2vsim.sensors.camera import render_cameras
@@ -56,7 +58,9 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
     # the runner checked the device before starting this process; a remote agent's host may differ (checked again)
     device = resolve_device(sc.perception.device)
     prepare_device(device)
-    encoder = build_agent_encoder(sc).to(device)  # the models move once; each inference moves its inputs
+    encoder = build_cav_encoder(sc, me).to(device)  # the models move once; each inference moves its inputs
+    modality = agent_type(sc, me).modality  # a mixed fleet's CAV: its own sensor (cavs.fleet)
+    space = space_label(sc, me)  # what its feature messages name as their origin ("" outside a mixed fleet)
     precision = resolve_precision(sc.perception.precision)
     compressor, ratio = build_compressor(sc, encoder.out_channels), wire_ratio(sc)
     compressor = None if compressor is None else compressor.to(device)
@@ -116,7 +120,7 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
                     return 0
                 continue
             seen = True
-            lidar = sc.perception.modality == "lidar"
+            lidar = modality == "lidar"
             with timer.stage("sensing"):
                 scene = build_scene(world, assets)
                 sf = sense(world, me, sc, scene, lidar=lidar, cameras=not lidar)
@@ -124,7 +128,7 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
             with timer.stage("comm"):
                 bus.put("vis", json.dumps({"frame": world.frame, "ids": sorted(seen_ids)}).encode())
             with timer.stage("encoding"):
-                feats = encode_features(encoder, sf, sc, precision)
+                feats = encode_features(encoder, sf, sc, precision, modality)
             stamp = {"run_id": args.run_id, "sender_id": me, "frame": world.frame, "capture_time": world.time,
                      "sender_pose": actor.pose.as_tuple(), "compression": sc.comm.compression}
             confidence = maps = boxes = None
@@ -134,10 +138,11 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
                     if share < 1.0:
                         confidence = pooled_confidence(maps[0], feats.shape[-1])
             with timer.stage("comm"):
-                bus.put("features", encode(feature_message(compress(compressor, feats), confidence, share, stamp,
+                labelled = {**stamp, "space": space} if space else stamp
+                bus.put("features", encode(feature_message(compress(compressor, feats), confidence, share, labelled,
                                                            ratio), key))
                 if compressor is not None and me in args.egos:  # its ego fuses its own map uncompressed
-                    bus.put("own", encode(Message(kind="features", payload=feats, **stamp), key))
+                    bus.put("own", encode(Message(kind="features", payload=feats, **labelled), key))
                 if "early" in methods and lidar:
                     bus.put("points", encode(Message(kind="points", payload=body_frame_points(sf, sc), **stamp), key))
             if late:

@@ -53,6 +53,7 @@ from v2vsim.perception.build import (
     build_extrapolation,
     build_method_models,
     decompress,
+    feature_space,
     method_checkpoints,
     runnable_methods,
     wire_ratio,
@@ -60,6 +61,7 @@ from v2vsim.perception.build import (
 from v2vsim.perception.device import device_record, resolve_device
 from v2vsim.perception.device import prepare as prepare_device
 from v2vsim.perception.extrapolate import extrapolate_features
+from v2vsim.perception.fleet import agent_type, is_mixed
 from v2vsim.perception.precision import resolve as resolve_precision
 from v2vsim.perception.threads import fusion_pool, fusion_threads
 from v2vsim.recording.messages import MessageTape
@@ -150,10 +152,14 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
     c, f = encoder.out_channels, encoder.out_cells
     compressor, ratio = build_compressor(sc, c), wire_ratio(sc)
     compressor = None if compressor is None else compressor.to(device)
-    decoder = EgoDecoder(ego_wire_spec(sc, c, f, ratio), args.run_id, frozenset(args.cavs), key)
+    # a mixed fleet: every feature message names its space, and one this ego's models were not trained on is refused
+    spaces = frozenset({feature_space(sc)}) if is_mixed(sc) else None
+    decoder = EgoDecoder(ego_wire_spec(sc, c, f, ratio, spaces), args.run_id, frozenset(args.cavs), key)
     # a compressed wire: the ego's own CAV also hands it its map uncompressed ("own"), which it fuses as its own
-    own_decoder = None if compressor is None else EgoDecoder({"features": ego_wire_spec(sc, c, f, 1)["features"]},
-                                                             args.run_id, frozenset({me}), key)
+    own_decoder = None if compressor is None else EgoDecoder(
+        {"features": ego_wire_spec(sc, c, f, 1, spaces)["features"]}, args.run_id, frozenset({me}), key)
+    # LiDAR points come from the LiDAR CAVs only (a mixed fleet's camera CAVs send none)
+    lidar_cavs = [cav for cav in args.cavs if agent_type(sc, cav).modality == "lidar"]
     if replay is not None:  # replays of one recording in one process decode each message once
         decoder = replay.decoder(decoder, "v2v")
         own_decoder = None if own_decoder is None else replay.decoder(own_decoder, "own")
@@ -200,7 +206,8 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
     if sc.output.rerun:  # imported here: rerun and matplotlib cost an ego that does not record ~0.45 s at start
         from v2vsim.recording.recorder import Recorder
 
-        recorder = Recorder(out_dir / "recording.rrd", sc, list(models), list(args.cavs), me, static)
+        recorder = Recorder(out_dir / "recording.rrd", sc, list(models), list(args.cavs), me, static,
+                            types={cav: agent_type(sc, cav).label for cav in args.cavs} if is_mixed(sc) else None)
     pilot = None
     if sc.control is not None:  # closed loop: this ego's vehicle plans on control.method's output
         if sc.control.method != "oracle" and sc.control.method not in models:
@@ -213,6 +220,7 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
                          skipped=[m for m in methods if m not in models],
                          compensation=compensation_schemes(sc, list(models), extrapolations),
                          grid_cells=f, channels=c, wire_ratio=ratio,
+                         fleet={cav: agent_type(sc, cav).label for cav in args.cavs} if is_mixed(sc) else {},
                          device=device_record(sc.perception.device, device))
     tape = MessageTape(out_dir / "messages", sc, run_id=args.run_id, run_instance=args.run_instance, ego=me,
                        cavs=list(args.cavs), frames=args.frames, kinds=kinds,
@@ -277,7 +285,9 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
             present = [a.id for a in world.cavs if a.id in args.cavs]
             if not realtime:
                 with timer.stage("wait"):
-                    wait_messages(box, bus, k, present, [*kinds, *side], lost)
+                    wait_messages(box, bus, k, present, [kd for kd in [*kinds, *side] if kd != "points"], lost)
+                    if "points" in kinds:
+                        wait_messages(box, bus, k, [c for c in present if c in lidar_cavs], ["points"], lost)
                     if own_decoder is not None and me in present:
                         wait_messages(box, bus, k, [me], ["own"], lost)
             else:  # lockstep marks a CAV lost at the first frame whose messages it never sent (above);
@@ -358,6 +368,7 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
             summary.status = status
             summary.wall_s = time.monotonic() - t_start
             summary.lost_agents = dict(lost)
+            summary.feature_bytes = dict(inboxes["features"].bytes_by_sender)
             if pilot is not None:
                 summary.driving = driving_summary(sc, me, pilot, box, done_doc, replay is not None)
             by_kind = {kind: ib.stats for kind, ib in inboxes.items()}

@@ -201,14 +201,15 @@ def set_wire_ratio(encoder: str, preset: str, ratio: int, root: Path = WEIGHTS_D
 def register(path: Path, *, encoder: str, preset: str, methods: list[str], info: dict,
              root: Path = WEIGHTS_DIR, provides_encoder: bool = False, extrapolates: tuple[str, ...] = (),
              cells: int | None = None, compresses: int | None = None, trained_wire: int | None = None,
-             image_backbone: str | None = None) -> None:
+             image_backbone: str | None = None, aligns: str | None = None) -> None:
     """Add (or replace) a checkpoint file in the manifest, with its sha256 and size; `provides_encoder`:
     this file holds the encoder every CAV runs (the single-agent stage); `extrapolates`: methods whose
     latency-compensation add-on this file is (it then serves no method itself: pass methods=[]);
     `cells`: the LiDAR grid it was trained at (ZooError if the entry holds another grid's files);
     `compresses`: the ratio whose channel compressor this file is; `trained_wire`: the file holds `methods`
     trained on the wire of this ratio rather than the zoo's (listed under "wire_methods", not "methods");
-    `image_backbone`: the camera image backbone it was trained with (ZooError if the entry holds another's)."""
+    `image_backbone`: the camera image backbone it was trained with (ZooError if the entry holds another's);
+    `aligns`: the camera encoder this file backward-aligns into this (LiDAR) zoo's space (listed under "aligned")."""
     doc = read_manifest(root)
     entry = doc["zoos"].setdefault(zoo_name(encoder, preset), {"encoder": None, "methods": {}, "files": {}})
     if cells is not None:
@@ -235,4 +236,6 @@ def register(path: Path, *, encoder: str, preset: str, methods: list[str], info:
             entry.setdefault("wire_methods", {}).setdefault(str(trained_wire), {})[m] = path.name
     for m in extrapolates:
         entry.setdefault("extrapolation", {})[m] = path.name
+    if aligns is not None:
+        entry.setdefault("aligned", {})[aligns] = path.name
     write_manifest(doc, root)

@@ -94,8 +94,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--stage", default="all",
                    help="all | single | cache | compress (the wire's channel compressors, --ratios) | none | early | "
                         "attfuse | fcooper | v2vnet | cobevt | disconet | extrapolate (latency compensation for the "
-                        "--out zoo's cobevt; not part of all) | the name of an installed fusion plugin (`v2vsim "
-                        "models` lists them; not part of all)")
+                        "--out zoo's cobevt; not part of all) | align (a camera --encoder backward-aligned into the "
+                        "--out LiDAR zoo's feature space, HEAL; not part of all) | the name of an installed fusion "
+                        "plugin (`v2vsim models` lists them; not part of all)")
     p.add_argument("--out", default="models/weights", help="zoo directory: manifest.json + <encoder>_<preset>/")
     p.add_argument("--work", default="runs/train", help="checkpoints and the feature cache (resumable)")
     p.add_argument("--resume", action="store_true", help="continue the stage from its last checkpoint")
@@ -110,6 +111,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--batch", type=int, default=None, help="override the stage's default")
     p.add_argument("--lr", type=float, default=None, help="override the stage's default (peak, one-cycle)")
     p.add_argument("--val-samples", type=int, default=None, help="validation samples after each epoch")
+    p.add_argument("--distill-weight", type=float, default=None,
+                   help="`align` stage: weight of the distillation from the LiDAR encoder's map of the same frame "
+                        "(default 1; 0: off)")
     p.add_argument("--val-every", type=int, default=1, help="validate every N epochs (and after the last)")
     p.add_argument("--yaw-jitter", dest="yaw_jitter_deg", type=float, default=None, metavar="DEG",
                    help="camera `single` stage: turn each sample's agent frame by a uniform angle in [-DEG, DEG] "

@@ -43,6 +43,7 @@ from v2vsim.comm.transport import TransportError, free_ports, loopback_endpoint,
 from v2vsim.config import ConfigError, Scenario, check_output_dir
 from v2vsim.evaluation.status import cav_ranges, terminal_line
 from v2vsim.perception.build import check_scenario, method_checkpoints, runnable_methods, zoo_for
+from v2vsim.perception.fleet import fleet_types
 from v2vsim.run_outcome import ego_statuses, write_failure_metrics
 from v2vsim.sensors.sensing import ego_ids
 from v2vsim.traffic.base import cav_id
@@ -138,8 +139,13 @@ def run(sc: Scenario, out: Path, frames: int | None = None, remote_cavs: tuple[s
           f"methods {', '.join(runnable)} -> {out}", file=sys.stderr)
     dropped = [m for m in sc.perception.methods if m not in runnable]
     if dropped:
-        print(f"v2vsim: note: {', '.join(dropped)} left out: early fusion ships LiDAR points and this run's "
-              f"modality is {sc.perception.modality}", file=sys.stderr)
+        why = (f"this run's modality is {sc.perception.modality}" if sc.perception.modality != "lidar"
+               else "an ego of this mixed fleet carries no LiDAR")
+        print(f"v2vsim: note: {', '.join(dropped)} left out: early fusion ships LiDAR points and {why}",
+              file=sys.stderr)
+    if sc.cavs.fleet:
+        types = fleet_types(sc, cavs)
+        print("v2vsim: fleet: " + ", ".join(f"{c} {t.label}" for c, t in types.items()), file=sys.stderr)
     z = zoo_for(sc)
     untrained = [m for m, f in method_checkpoints(sc, runnable).items() if f is None] if z is not None else []
     if untrained:  # (the whole run untrained, weights none or no zoo: the report's first lines say so)

@@ -149,7 +149,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     from v2vsim.training.train import command_line, main_train
 
     overrides = {k: getattr(args, k) for k in ("epochs", "samples_per_epoch", "batch", "lr", "val_samples",
-                                               "yaw_jitter_deg")
+                                               "yaw_jitter_deg", "distill_weight")
                  if getattr(args, k) is not None}
     extra = {}
     if args.ratios is not None:

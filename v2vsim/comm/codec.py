@@ -6,6 +6,7 @@ Layout (little endian), version 1::
                                channel_compression, n_arrays, frame, capture_time, x, y, z, yaw
     run id  "<H" length + utf-8 bytes
     sender  "<H" length + utf-8 bytes
+    space   "<H" length + utf-8 bytes, only when flags & FLAG_SPACE: "<encoder>@<feature space>" (Message.space)
     arrays  n_arrays x ("<B" name length + utf-8 name, "<BB" dtype, ndim, "<ndim I" shape)
     payload "<I" length + the arrays' bytes back to back (zlib-compressed as one block if compressed)
     tag     32 bytes hmac-sha256 under the run key over everything before it (only when flags & FLAG_SIGNED),
@@ -67,6 +68,7 @@ from v2vsim.comm.message import (
     DTYPE_CODES,
     FLAG_IDENTITY,
     FLAG_SIGNED,
+    FLAG_SPACE,
     KIND_CODES,
     KIND_DTYPES,
     MAGIC,
@@ -88,7 +90,8 @@ from v2vsim.comm.message import (
 )
 
 __all__ = [
-    "CELLS", "COMPRESSION_CODES", "DTYPE_CODES", "FLAG_IDENTITY", "FLAG_SIGNED", "KIND_CODES", "KIND_DTYPES",
+    "CELLS", "COMPRESSION_CODES", "DTYPE_CODES", "FLAG_IDENTITY", "FLAG_SIGNED", "FLAG_SPACE", "KIND_CODES",
+    "KIND_DTYPES",
     "MAGIC", "MAX_NDIM", "MAX_PAYLOAD_BYTES", "REASONS", "SIG_LEN", "TAG_LEN", "VERSION", "AtMost", "Compression",
     "Dim", "Kind", "KindSpec", "Message", "RejectedMessage", "ShapeSpec", "Signer", "check_arrival", "decode",
     "encode", "encoded_size_hint",
@@ -157,12 +160,15 @@ def encode(msg: Message, key: Signer | None = None, *, check_finite: bool = True
     parts: list[bytes | memoryview] = []
     x, y, z, yaw = (float(v) for v in msg.sender_pose)
     flags = 0 if key is None else FLAG_IDENTITY if isinstance(key, Identity) else FLAG_SIGNED
+    if msg.space:
+        flags |= FLAG_SPACE
     if isinstance(key, Identity) and key.name != data_signer(msg.sender_id):
         raise ValueError(f"{key.name} cannot sign a message of sender {msg.sender_id!r}")
     parts.append(_FIXED.pack(MAGIC, VERSION, KIND_CODES[msg.kind], flags, COMPRESSION_CODES[msg.compression],
                              int(msg.channel_compression), len(arrays), int(msg.frame),
                              float(msg.capture_time), x, y, z, yaw))
-    for text, what in ((msg.run_id, "run id"), (msg.sender_id, "sender id")):
+    texts = [(msg.run_id, "run id"), (msg.sender_id, "sender id")] + ([(msg.space, "space")] if msg.space else [])
+    for text, what in texts:
         b = _utf8(text, what, 0xFFFF)
         parts += [_U16.pack(len(b)), b]
     blobs: list[memoryview] = []
@@ -333,6 +339,7 @@ def _decode(data: bytes | bytearray | memoryview, key: Signer | None, known_send
 
     msg_run = r.text("run id")
     sender = r.text("sender id")
+    space = r.text("space") if flags & FLAG_SPACE else ""
     if run_id is not None and msg_run != run_id:
         raise RejectedMessage("wrong_run", f"{msg_run!r} != {run_id!r}")
     if known_senders is not None and sender not in known_senders:
@@ -345,6 +352,9 @@ def _decode(data: bytes | bytearray | memoryview, key: Signer | None, known_send
         if kind not in spec:
             raise RejectedMessage("unexpected_kind", kind)
         kspec = spec[kind]
+        if kspec.spaces is not None and space.partition("@")[2] not in kspec.spaces:
+            raise RejectedMessage("foreign_space", f"{sender!r} sent {kind} of {space or 'an unnamed space'!r}; "
+                                                   f"this receiver fuses {', '.join(sorted(kspec.spaces))}")
         if kspec.channel_compression is not None and ch_comp != kspec.channel_compression:
             raise RejectedMessage("bad_header", f"channel_compression {ch_comp}, this receiver decodes "
                                                 f"{kspec.channel_compression}")
@@ -433,7 +443,7 @@ def _decode(data: bytes | bytearray | memoryview, key: Signer | None, known_send
     return Message(kind=kind, run_id=msg_run, sender_id=sender, frame=frame, capture_time=capture_time,
                    sender_pose=(x, y, z, yaw), payload=arrays[0][1],
                    compression=_COMPRESSION_NAMES[comp_code],  # type: ignore[arg-type]
-                   channel_compression=ch_comp, extras=dict(arrays[1:]))
+                   channel_compression=ch_comp, extras=dict(arrays[1:]), space=space)
 
 
 def _check_cells(cells: np.ndarray, payload: np.ndarray, n_cells: int) -> None:

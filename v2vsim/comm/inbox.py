@@ -81,6 +81,8 @@ class Inbox:
         self._fused: set[tuple[str, int]] = set()  # (sender, frame) whose channel latency is recorded
         self._events: dict[str, LinkEvent] = {}  # per sender, since the last take_events()
         self.bytes_this_frame = 0
+        self.bytes_by_sender: dict[str, int] = {}  # every message that crossed the air, by sender (a mixed fleet's
+        # report splits them by agent type)
         self.medium: SharedMedium[_OnAir] | None = None
         if cfg.medium == "shared":
             rate = data_rate_mbps(cfg)
@@ -113,12 +115,14 @@ class Inbox:
                                 _OnAir(msg, size, distance_m, geometry))
             if not own:
                 self.bytes_this_frame += size
+                self.bytes_by_sender[msg.sender_id] = self.bytes_by_sender.get(msg.sender_id, 0) + size
                 self.stats.record_sent(size)
                 self._events[msg.sender_id] = LinkEvent(msg.sender_id, "in_flight")  # waiting for the channel
             return
         if own:
             return
         self.bytes_this_frame += size  # what crossed the air; the receiver's own message did not
+        self.bytes_by_sender[msg.sender_id] = self.bytes_by_sender.get(msg.sender_id, 0) + size
         self.stats.record_sent(size)
         d = self.link(msg.sender_id).transmit(size, send_time, distance_m, geometry)
         self._judge(msg, size, d, distance_m)

@@ -16,7 +16,8 @@ MAGIC = b"V2VS"
 VERSION = 1
 FLAG_SIGNED = 0x01  # tag: hmac-sha256 under the run's shared key (comm.auth.key_file)
 FLAG_IDENTITY = 0x02  # tag: the sending process's Ed25519 signature (comm.auth.identity per_process)
-_KNOWN_FLAGS = FLAG_SIGNED | FLAG_IDENTITY
+FLAG_SPACE = 0x04  # the header names the encoder and feature space that made the payload (a mixed fleet)
+_KNOWN_FLAGS = FLAG_SIGNED | FLAG_IDENTITY | FLAG_SPACE
 TAG_LEN = 32  # hmac-sha256
 SIG_LEN = 64  # Ed25519
 MAX_PAYLOAD_BYTES = 256 << 20  # declared sizes above this are refused before any allocation (no spec given)
@@ -65,6 +66,8 @@ class KindSpec:
     cells: the number of cells of the dense grid that the required extra "cells" indexes, None
     when the kind carries no indices. The receiver scatters payload rows into those cells, so
     they must be integers, one per row, in range and strictly increasing ('bad_indices').
+    spaces: the feature spaces the receiver can fuse (Message.space after its "@"); a message naming
+    another, or none, is 'foreign_space'; None accepts any.
     """
 
     payload: ShapeSpec
@@ -72,6 +75,8 @@ class KindSpec:
     optional: frozenset[str] = frozenset()
     channel_compression: int | None = 1
     cells: int | None = None
+    # the feature spaces accepted (the part of Message.space after "@"); None: any, a space named or not
+    spaces: frozenset[str] | None = None
 
     def __post_init__(self) -> None:
         if self.cells is not None and (self.cells < 1 or CELLS not in self.extras or CELLS in self.optional):
@@ -93,7 +98,7 @@ class KindSpec:
         if raw is None:
             return None
         arrays = (1 + len(self.extras)) * (1 + 0xFF + 2 + 4 * MAX_NDIM)
-        return _FIXED.size + 2 * (2 + 0xFFFF) + arrays + 4 + raw + raw // 1000 + 64 + SIG_LEN
+        return _FIXED.size + 3 * (2 + 0xFFFF) + arrays + 4 + raw + raw // 1000 + 64 + SIG_LEN
 
 
 def _max_elems(spec: ShapeSpec) -> int | None:
@@ -108,14 +113,16 @@ def _max_elems(spec: ShapeSpec) -> int | None:
 REASONS = ("truncated", "bad_magic", "bad_version", "bad_header", "unknown_kind", "unknown_dtype",
            "unexpected_kind", "shape_mismatch", "size_mismatch", "decompress_error", "non_finite",
            "unknown_sender", "wrong_run", "unsigned", "bad_signature", "missing_extra", "unexpected_extra",
-           "replayed", "bad_indices", "out_of_window", "duplicate")
+           "replayed", "bad_indices", "out_of_window", "duplicate", "foreign_space")
 """Stable rejection counter keys. missing_extra / unexpected_extra: the extras differ from the
 KindSpec; replayed: a control message (v2vsim.comm.control) or a V2V message (same sender, kind and
 frame) seen before; bad_indices: a "sparse" message's cells are not integers, one per payload row, in
 range, strictly increasing; out_of_window: a V2V message or a world for a frame the run cannot have reached
 yet (agents/ego_mailbox.py, agents/worlds.py), or an ack for a frame the driver has not published;
 duplicate: a second, different message (or world) for a (sender, kind, frame) already held; size_mismatch
-also a message longer than its kind's bound, refused before it is copied off the transport."""
+also a message longer than its kind's bound, refused before it is copied off the transport; foreign_space: a
+message whose header names a feature space (Message.space) that the receiver's fusion models were not trained on
+(KindSpec.spaces), or names none where the receiver requires one."""
 
 
 class RejectedMessage(Exception):
@@ -141,6 +148,9 @@ class Message:
     compression: Compression = "none"
     channel_compression: int = 1
     extras: Mapping[str, np.ndarray] = field(default_factory=dict)
+    # "<encoder>@<feature space>" of a feature map in a mixed fleet (v2vsim.perception.build.space_label), e.g.
+    # "sinbevt@pointpillars_tiny:f487cbd52552"; "" writes none (every single-encoder run: the wire bytes of before)
+    space: str = ""
 
     @property
     def dtype(self) -> str:

@@ -47,20 +47,21 @@ def message_kind(method: str) -> str | None:
     return {"early": "points", "late": "outputs", "none": None}.get(method, "features")
 
 
-def ego_wire_spec(sc: Scenario, encoder_out_channels: int, encoder_out_cells: int, ratio: int | None = None
-                  ) -> dict[str, KindSpec]:
+def ego_wire_spec(sc: Scenario, encoder_out_channels: int, encoder_out_cells: int, ratio: int | None = None,
+                  spaces: frozenset[str] | None = None) -> dict[str, KindSpec]:
     """The KindSpec of each message kind the ego of `sc` may receive (see the module docstring); `ratio`: the
-    run's channel compression (v2vsim.perception.build.wire_ratio; default comm.channel_compression or 1)."""
+    run's channel compression (v2vsim.perception.build.wire_ratio; default comm.channel_compression or 1);
+    `spaces`: the feature spaces a features/sparse message must name (a mixed fleet; None: any)."""
     c, f = encoder_out_channels, encoder_out_cells
     r = ratio if ratio is not None else (sc.comm.channel_compression or 1)
     s = get_preset(sc.perception.preset).seg_cells  # the late outputs' maps: the heads' grid, not 8 F
     sweep = sc.sensors.lidar.channels * sc.sensors.lidar.points_per_channel
     return {
-        "features": KindSpec((c // r, f, f), channel_compression=r),
+        "features": KindSpec((c // r, f, f), channel_compression=r, spaces=spaces),
         "points": KindSpec((AtMost(sweep), 4)),
         "outputs": KindSpec((3, s, s), extras={"boxes": (AtMost(MAX_BOXES), BOX_FIELDS)}),
         "sparse": KindSpec((AtMost(f * f), c // r), extras={CELLS: (AtMost(f * f),)}, channel_compression=r,
-                           cells=f * f),
+                           cells=f * f, spaces=spaces),
     }
 
 

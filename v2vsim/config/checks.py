@@ -45,6 +45,7 @@ def _check_cross_fields(sc: Scenario, loader: _Loader) -> None:
         loader.fail("output.record_messages", "true needs transport.clock lockstep: in realtime what the ego has "
                     "at a frame depends on wall-clock arrival order, which a replay cannot reproduce")
     _check_egos(sc, loader)
+    _check_fleet(sc, loader)
     _check_control(sc, loader)
     _check_key_file(sc, loader)
     for name in ("listen", "connect"):
@@ -65,6 +66,32 @@ def _check_egos(sc: Scenario, loader: _Loader) -> None:
                         f"allowed: {allowed}")
         if ego in sc.cavs.ego[:i]:
             loader.fail(f"cavs.ego[{i}]", f"{ego!r} is listed twice; each ego once")
+
+
+def _check_fleet(sc: Scenario, loader: _Loader) -> None:
+    """Each fleet group names CAVs of this run, each CAV in one group at most, an encoder of its modality; a fleet
+    fuses in the LiDAR zoo's space (perception.encoder pointpillars, the base its types are aligned to)."""
+    if not sc.cavs.fleet:
+        return
+    ids = [f"cav{i}" for i in range(sc.cavs.count)]  # v2vsim.traffic.base.cav_id
+    allowed = ", ".join(ids) if len(ids) <= 4 else f"{ids[0]}..{ids[-1]}"
+    if sc.perception.encoder != "pointpillars":
+        loader.fail("cavs.fleet", f"a mixed fleet fuses in the LiDAR zoo's feature space, the base its agent types are "
+                    f"aligned to (the `align` stage); perception.encoder is {sc.perception.encoder!r}; allowed: "
+                    "perception.modality lidar with perception.encoder pointpillars")
+    seen: dict[str, int] = {}
+    for g, group in enumerate(sc.cavs.fleet):
+        where = f"cavs.fleet[{g}]"
+        if group.encoder not in ENCODERS_BY_MODALITY[group.modality]:
+            loader.fail(f"{where}.encoder", f"{group.encoder!r} does not take {group.modality} input; allowed for "
+                        f"modality {group.modality!r}: {', '.join(ENCODERS_BY_MODALITY[group.modality])}")
+        for i, c in enumerate(group.cavs):
+            if c not in ids:
+                loader.fail(f"{where}.cavs[{i}]", f"{c!r} is not a CAV of this run (cavs.count is {sc.cavs.count}); "
+                            f"allowed: {allowed}")
+            if c in seen:
+                loader.fail(f"{where}.cavs[{i}]", f"{c!r} is already in cavs.fleet[{seen[c]}]; each CAV in one group")
+            seen[c] = g
 
 
 def _check_control(sc: Scenario, loader: _Loader) -> None:

@@ -88,6 +88,17 @@ class MeetConfig:
 
 
 @dataclass(frozen=True)
+class FleetGroup:
+    """CAVs that carry another sensor and encoder than perception.modality / perception.encoder (a mixed fleet,
+    docs/scenario.md): their features join the run's feature space through an encoder aligned to it (the
+    `align` training stage, HEAL's backward alignment)."""
+
+    cavs: tuple[str, ...] = _f((), "a non-empty list of CAV ids (cav0, cav1, ...)", lambda v: len(v) > 0)
+    modality: Literal["lidar", "camera"] = "camera"
+    encoder: Literal["pointpillars", "sinbevt", "lara"] = "sinbevt"
+
+
+@dataclass(frozen=True)
 class CavsConfig:
     count: int = _f(4, "1..16", lambda v: 1 <= v <= 16)
     ego: str | tuple[str, ...] = _f("first", "'first', 'all' or a list of CAV ids",
@@ -96,6 +107,9 @@ class CavsConfig:
                                         "at which the CAVs reach the junction at free-flow speed)",
                                         lambda v: 0 <= v[0] <= v[1] <= 60)
     meet: MeetConfig = field(default_factory=MeetConfig)
+    # a mixed fleet: groups of CAVs with their own sensor and encoder; a CAV in no group runs perception.modality
+    # and perception.encoder (empty: every CAV does, as in every single-modality run)
+    fleet: tuple[FleetGroup, ...] = ()
 
 
 @dataclass(frozen=True)

@@ -134,6 +134,9 @@ class CooperativePerceptionEnv(ParallelEnv):
         self.render_mode = render_mode
         self.sc: Scenario = load_scenario(self.scenario_path, overrides)
         sc = self.sc
+        if sc.cavs.fleet:
+            raise ConfigError(f"{sc.source}: cavs.fleet: the PettingZoo env runs one agent type for every CAV; a mixed "
+                              "fleet runs with `v2vsim run`; allowed here: no cavs.fleet")
         self.possible_agents: list[str] = [cav_id(i) for i in range(sc.cavs.count)]
         self.agents: list[str] = []
         self.encoder = build_agent_encoder(sc)

@@ -58,6 +58,9 @@ class RunSummary:
     driving: dict | None = None  # closed loop: metrics.json `driving` (v2vsim.control.measures.driving_block)
     # where the ego's models ran: metrics.json `device` (v2vsim.perception.device.device_record); None: not said
     device: dict[str, str] | None = None
+    # a mixed fleet (cavs.fleet): CAV id -> its agent type's label (v2vsim.perception.fleet); empty otherwise
+    fleet: dict[str, str] = field(default_factory=dict)
+    feature_bytes: dict[str, int] = field(default_factory=dict)  # feature-message bytes received, by sender
 
 
 def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: CommStats,
@@ -105,7 +108,38 @@ def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: Comm
         "timing": summary.timing,  # the ego's own split of a frame (ms), as `v2vsim bench run` prints it
         # closed loop only (an open-loop run's metrics.json is as before)
         **({"driving": summary.driving} if summary.driving is not None else {}),
+        # a mixed fleet only: each agent type's CAVs and the feature bytes the ego received from them per frame
+        **({"fleet": fleet_json(summary)} if summary.fleet else {}),
     }
+
+
+def fleet_json(summary: RunSummary) -> dict:
+    """metrics.json `fleet`: {"cavs": {id: type}, "types": {type: {"cavs", "feature_bytes_per_frame"}}}; the bytes
+    are those of the feature messages that reached this ego over the air (its own map never crossed it)."""
+    frames = max(summary.frames, 1)
+    types: dict[str, dict] = {}
+    for cav, label in summary.fleet.items():
+        t = types.setdefault(label, {"cavs": [], "feature_bytes_per_frame": 0})
+        t["cavs"].append(cav)
+        t["feature_bytes_per_frame"] += summary.feature_bytes.get(cav, 0)
+    for t in types.values():
+        t["feature_bytes_per_frame"] = round(t["feature_bytes_per_frame"] / frames)
+    return {"cavs": dict(summary.fleet), "types": types}
+
+
+def fleet_md(doc: dict, summary: RunSummary) -> list[str]:
+    """The report's fleet section (a mixed fleet only)."""
+    fleet = doc.get("fleet")
+    if not fleet:
+        return []
+    lines = ["", "## Fleet (cavs.fleet)", "",
+             f"Every feature message names its encoder and feature space; {summary.ego} fuses those of its zoo's "
+             "space, into which each other type's encoder was aligned (the `align` stage; docs/training.md).", "",
+             "| agent type | CAVs | feature bytes / frame received by the ego |", "|---|---|---|"]
+    for label, t in fleet["types"].items():
+        cavs = ", ".join(f"**{c}** (ego)" if c == summary.ego else c for c in t["cavs"])
+        lines.append(f"| {label} | {cavs} | {t['feature_bytes_per_frame']} |")
+    return lines
 
 
 def vs_none(score: MethodScore, base: MethodScore | None) -> dict | None:
@@ -209,8 +243,9 @@ def report_md(doc: dict, summary: RunSummary) -> str:
         lines += ["", f"Trained weights (`perception.weights: {sc.perception.weights}`, verified against the zoo "
                   f"manifest's sha256): {used}."]
     if summary.skipped:
-        lines += ["", f"Not run with {sc.perception.modality} input: {', '.join(summary.skipped)} "
-                  "(early fusion ships raw LiDAR points)."]
+        what = (f"with {sc.perception.modality} input" if not summary.fleet
+                else f"with {summary.ego}'s {summary.fleet.get(summary.ego, '')} sensor")
+        lines += ["", f"Not run {what}: {', '.join(summary.skipped)} (early fusion ships raw LiDAR points)."]
     if sc.comm.compensation:
         done = ", ".join(f"{m}: {how}" for m, how in summary.compensation.items())
         rest = [m for m in summary.methods if m not in summary.compensation]
@@ -233,6 +268,7 @@ def report_md(doc: dict, summary: RunSummary) -> str:
                  if sort == "global" else
                  "within each frame, frames in order (`evaluation.ap_sort: per_frame`, OpenCOOD's default).")]
     lines += _vs_none_md(doc)
+    lines += fleet_md(doc, summary)
     lines += driving_md(doc.get("driving"))
     c = doc["comm"]
     lat = c["latency_ms"]

@@ -15,9 +15,11 @@ from v2vsim.perception.precision import Precision, autocast
 from v2vsim.sensors.sensing import SensorFrame
 
 
-def encoder_inputs(sf: SensorFrame, sc: Scenario) -> list[Tensor] | tuple[Tensor, Tensor, Tensor]:
-    """A SensorFrame as the encoder takes it: body-frame points, or (images, intrinsics, extrinsics)."""
-    if sc.perception.modality == "lidar":
+def encoder_inputs(sf: SensorFrame, sc: Scenario, modality: str | None = None
+                   ) -> list[Tensor] | tuple[Tensor, Tensor, Tensor]:
+    """A SensorFrame as the encoder takes it: body-frame points, or (images, intrinsics, extrinsics).
+    `modality`: the CAV's sensor (default perception.modality; a mixed fleet's CAV: its type's)."""
+    if (modality or sc.perception.modality) == "lidar":
         return [torch.from_numpy(body_frame_points(sf, sc))]
     cams = sf.cameras
     images = torch.from_numpy(cams.images).permute(0, 3, 1, 2).float().div(255.0)[None]  # [1, M, 3, h, w]
@@ -34,13 +36,14 @@ def body_frame_points(sf: SensorFrame, sc: Scenario) -> np.ndarray:
 
 
 @torch.no_grad()
-def encode(encoder: nn.Module, sf: SensorFrame, sc: Scenario, precision: Precision = "fp32") -> np.ndarray:
-    """[C, F, F] float32 BEV features of one CAV in its own frame."""
-    if sc.perception.modality == "lidar":
+def encode(encoder: nn.Module, sf: SensorFrame, sc: Scenario, precision: Precision = "fp32",
+           modality: str | None = None) -> np.ndarray:
+    """[C, F, F] float32 BEV features of one CAV in its own frame; `modality`: as for encoder_inputs."""
+    if (modality or sc.perception.modality) == "lidar":
         return encode_points(encoder, body_frame_points(sf, sc), precision)
     device = model_device(encoder)
     with autocast(precision, device.type):
-        return to_host(encoder(*(t.to(device) for t in encoder_inputs(sf, sc)))[0].float())
+        return to_host(encoder(*(t.to(device) for t in encoder_inputs(sf, sc, "camera")))[0].float())
 
 
 @torch.no_grad()

@@ -39,12 +39,14 @@ METHOD_PALETTE = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), 
 
 class Recorder:
     def __init__(self, path: Path, sc: Scenario, methods: list[str], cavs: list[str], ego: str,
-                 static: StaticMap) -> None:
+                 static: StaticMap, types: dict[str, str] | None = None) -> None:
+        """`types`: a mixed fleet's CAV id -> agent type label; each CAV is then coloured and labelled by type."""
         path.parent.mkdir(parents=True, exist_ok=True)
         self.grid = BevGrid(sc.bev.size_m, sc.bev.cells)
         self.bev_size_m = sc.bev.size_m
         self.methods = methods
         self.cavs = sorted(cavs)
+        self.types = types or {}
         self.ego = ego
         self.rig = camera_rig(sc.sensors.cameras)
         self.delivered: dict[str, list[int]] = {}  # sender -> [delivered, events]
@@ -75,7 +77,7 @@ class Recorder:
                                  ("min_gap_m", (214, 39, 40))):
                 log(f"drive/{name}", rr.SeriesLines(colors=colour, names=name, widths=2.0), static=True)
         for cav in self.cavs:
-            colour = world3d.cav_colour(self.cavs, cav)
+            colour = world3d.cav_colour(self.cavs, cav, self.types)
             log(f"links/latency_ms/{cav}", rr.SeriesPoints(colors=colour, names=cav, markers="circle",
                                                            marker_sizes=2.0), static=True)
             log(f"links/age_ms/{cav}", rr.SeriesPoints(colors=colour, names=cav, markers="circle",
@@ -111,24 +113,27 @@ class Recorder:
         rec.log("log/fusion", rr.TextLog(f"frame {k}: fused {', '.join(inp.senders)} | links: {fates}",
                                          level=rr.TextLogLevel.INFO))
 
+    def _label(self, cav: str) -> str:
+        return f"{cav} {self.types[cav]}" if cav in self.types else cav
+
     def _log_world(self, world: WorldState, links: list[LinkEvent], scans: dict[str, Scan]) -> None:
         rec = self.rec
         ego = world.actor(self.ego)
         others = [a for a in world.actors if not a.cav]
         cavs = [a for a in world.actors if a.cav and a.id != self.ego]
         rec.log("world/vehicles", world3d.vehicle_boxes(others, [world3d.OTHER_VEHICLE_RGB] * len(others)))
-        rec.log("world/cavs", world3d.vehicle_boxes(cavs, [world3d.cav_colour(self.cavs, a.id) for a in cavs],
-                                                    labels=[a.id for a in cavs]))
+        colours = [world3d.cav_colour(self.cavs, a.id, self.types) for a in cavs]
+        rec.log("world/cavs", world3d.vehicle_boxes(cavs, colours, labels=[self._label(a.id) for a in cavs]))
         if ego is None:
             return
-        rec.log("world/ego", world3d.vehicle_boxes([ego], [world3d.cav_colour(self.cavs, ego.id)],
-                                                   labels=[f"ego {ego.id}"], solid=True))
+        rec.log("world/ego", world3d.vehicle_boxes([ego], [world3d.cav_colour(self.cavs, ego.id, self.types)],
+                                                   labels=[f"ego {self._label(ego.id)}"], solid=True))
         rec.log("world/bev_extent", world3d.bev_extent(ego.pose, self.bev_size_m))
         rec.log("world/links", world3d.link_lines(links, ego.pose, {a.id: a.pose for a in cavs}))
         for cav in self.cavs:
             scan = scans.get(cav)
             pts = scan.points if scan is not None and scan.points is not None else np.zeros((0, 3), np.float32)
-            rec.log(f"world/lidar/{cav}", rr.Points3D(pts, colors=world3d.cav_colour(self.cavs, cav),
+            rec.log(f"world/lidar/{cav}", rr.Points3D(pts, colors=world3d.cav_colour(self.cavs, cav, self.types),
                                                            radii=rr.components.Radius.ui_points(1.5)))
         own = scans.get(self.ego)
         if own is not None and own.jpegs is not None:

@@ -35,8 +35,23 @@ OUTCOME_RGB = {"delivered": (40, 210, 90), "reused": (120, 200, 200), "in_flight
 LINK_HEIGHT_M = 3.0  # links are drawn above the roofs so they do not hide in the boxes
 
 
-def cav_colour(cavs: list[str], cav: str) -> tuple[int, int, int]:
-    return CAV_PALETTE[cavs.index(cav) % len(CAV_PALETTE)] if cav in cavs else OTHER_VEHICLE_RGB
+# A mixed fleet (cavs.fleet) colours each CAV by its agent type instead: LiDAR types blues, camera types oranges.
+TYPE_PALETTE = {"lidar": [(31, 119, 180), (23, 190, 207), (148, 103, 189)],
+                "camera": [(255, 127, 14), (227, 119, 194), (188, 189, 34)]}
+
+
+def cav_colour(cavs: list[str], cav: str, types: dict[str, str] | None = None) -> tuple[int, int, int]:
+    """A CAV's colour: its own (CAV_PALETTE by its place among `cavs`), or with `types` (CAV id -> agent type
+    label, e.g. "camera (sinbevt)") its type's, the same for every CAV of the type."""
+    if cav not in cavs:
+        return OTHER_VEHICLE_RGB
+    if not types:
+        return CAV_PALETTE[cavs.index(cav) % len(CAV_PALETTE)]
+    label = types[cav]
+    kind = "lidar" if label.startswith("LiDAR") else "camera"
+    same = sorted({t for t in types.values() if t.startswith("LiDAR") == (kind == "lidar")})
+    palette = TYPE_PALETTE[kind]
+    return palette[same.index(label) % len(palette)]
 
 
 def _triangles(area: Polygon | shapely.MultiPolygon) -> np.ndarray:

@@ -37,6 +37,7 @@ from models.compression import ChannelCompressor
 from models.heads import AnchorTargetAssigner
 from models.registry import MODALITY
 from v2vsim.data.torch_dataset import CooperativeDataset, collate, open_store, tensor_inputs
+from v2vsim.training.align import ALIGN, run_align
 from v2vsim.training.augment import yaw_rotate_batch
 from v2vsim.training.cache import (
     FeatureCache,
@@ -308,6 +309,11 @@ def batches(ds: CooperativeDataset, perm: np.ndarray, batch: int, first: int, st
 
 
 def main_train(args: TrainArgs, log=sys.stderr) -> int:
+    if args.stage == ALIGN:  # a camera type joins the LiDAR zoo at --out (v2vsim.training.align)
+        t0 = time.monotonic()
+        run_align(args, log=log)
+        print(f"[{ALIGN}] done in {(time.monotonic() - t0) / 60:.1f} min", file=log, flush=True)
+        return 0
     for st in stages_for(args.stage, args.encoder):
         for ratios in ([(r,) for r in args.ratios] if st == COMPRESS else [args.ratios]):
             t0 = time.monotonic()

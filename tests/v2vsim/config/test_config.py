@@ -88,6 +88,16 @@ def test_override_parses_yaml_scalars(tmp_path: Path) -> None:
         ("rate_hz: 20\n", ["comm.fusion_deadline_ms=60"], ["comm.fusion_deadline_ms", "0 <= value < 50"]),
         ("seed: 1\n", ["comm.fusion_deadline_ms=-1"], ["comm.fusion_deadline_ms", ">= 0"]),
         ("seed: 1\n", ["comm.compensation=maybe"], ["comm.compensation", "true/false"]),
+        # issue 48: a mixed fleet names CAVs of the run once each, an encoder of its modality, on the LiDAR base
+        ("seed: 1\n", ["cavs.fleet=[{cavs: [cav7]}]"], ["cavs.fleet[0].cavs[0]", "'cav7'", "cavs.count is 4"]),
+        ("seed: 1\n", ["cavs.fleet=[{cavs: [cav1]}, {cavs: [cav2, cav1]}]"],
+         ["cavs.fleet[1].cavs[1]", "already in cavs.fleet[0]"]),
+        ("seed: 1\n", ["cavs.fleet=[{cavs: [cav1], modality: camera, encoder: pointpillars}]"],
+         ["cavs.fleet[0].encoder", "sinbevt, lara"]),
+        ("seed: 1\n", ["cavs.fleet=[{cavs: []}]"], ["cavs.fleet[0].cavs", "non-empty list"]),
+        ("seed: 1\n", ["cavs.fleet=[{cavs: [cav1], sensor: camera}]"], ["cavs.fleet[0].sensor", "unknown key"]),
+        ("perception: {modality: camera, encoder: sinbevt}\n", ["cavs.fleet=[{cavs: [cav1]}]"],
+         ["cavs.fleet", "LiDAR zoo's feature space", "pointpillars"]),
     ],
 )
 def test_bad_input_names_file_key_and_allowed(tmp_path: Path, text: str, overrides: list[str],
