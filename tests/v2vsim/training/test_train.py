@@ -96,22 +96,6 @@ def test_resume_continues_mid_stage(tiny_dataset, tmp_path, monkeypatch) -> None
 
 # ---- the camera track (SinBEVT): the same stages on images -----------------------------------------------
 
-CAMERA = ("perception.modality=camera", "perception.encoder=sinbevt")
-
-
-@pytest.fixture(scope="module")
-def camera_dataset(tmp_path_factory: pytest.TempPathFactory):
-    """The intersection with cameras and camera visibility: 2 training frames (seed 710), 2 validation (711)."""
-    from v2vsim.data.record import record_dataset
-
-    root = tmp_path_factory.mktemp("camera")
-    record_dataset("scenarios/intersection.yaml", [710], 2, root, split="train", overrides=CAMERA, cameras=True,
-                   log=io.StringIO())
-    record_dataset("scenarios/intersection.yaml", [711], 2, root, split="val", overrides=CAMERA, cameras=True,
-                   log=io.StringIO())
-    return root
-
-
 def test_camera_samples_round_trip_and_a_few_steps_lower_the_loss(camera_dataset, tmp_path) -> None:
     import numpy as np
 
@@ -185,7 +169,8 @@ def test_camera_stages_chain_into_a_zoo_a_camera_run_loads(camera_dataset, tmp_p
     with pytest.raises(DatasetError, match="trained with the efficientnet_lite0 backbone"):
         run_stage(dataclasses.replace(_args(camera_dataset, tmp_path, "none"), encoder="sinbevt",
                                       image_backbone="resnet"), log=log)
-    sc = load_scenario("scenarios/intersection.yaml", [*CAMERA, f"perception.weights={tmp_path / 'zoo'}"])
+    sc = load_scenario("scenarios/intersection.yaml", ["perception.modality=camera", "perception.encoder=sinbevt",
+                                                       f"perception.weights={tmp_path / 'zoo'}"])
     enc = build_agent_encoder(sc)
     models = build_method_models(sc, enc, ("none", "cobevt"))
     saved = torch.load(tmp_path / "zoo" / "sinbevt_tiny" / "cobevt.pt", weights_only=True)["state_dict"]
