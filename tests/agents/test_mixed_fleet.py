@@ -49,3 +49,45 @@ def test_a_camera_ego_fuses_lidar_neighbours_without_early_fusion(tmp_path: Path
     assert m["fleet"]["cavs"]["cav0"] == "camera (sinbevt)" and m["comm"]["rejected"] == 0
     report = (tmp_path / "cam_ego" / "report.md").read_text()
     assert "Not run with cav0's camera (sinbevt) sensor: early" in report
+
+
+def test_a_message_of_a_foreign_space_is_refused_and_counted(tmp_path: Path) -> None:
+    """The ego of a mixed fleet (its real loop, decoders and models; a bus stand-in delivers one frame): a neighbour's
+    map that names another feature space (here the camera zoo's own) is refused as foreign_space and counted, the
+    one naming the ego's space is delivered, and the ego carries on to the end of its run."""
+    import numpy as np
+
+    import agents.ego as ego_mod
+    from agents.args import AgentArgs
+    from tests.agents.test_hostile import FakeBus
+    from tests.v2vsim.sensors._worlds import car, static_map
+    from v2vsim.comm.codec import Message, encode
+    from v2vsim.config import load_scenario
+    from v2vsim.perception.build import feature_space
+    from v2vsim.world.serialize import static_to_bytes, world_to_bytes
+    from v2vsim.world.state import WorldState
+
+    sc = load_scenario(MIXED, ["output.rerun=false", "perception.methods=[none, cobevt]", "transport.clock=realtime"])
+    static = static_map()
+    world = WorldState(0.0, 0, (car("cav0", 0.0, 0.0, cav=True), car("cav1", 20.0, 0.0, cav=True),
+                                car("cav2", -20.0, 5.0, cav=True)), static)
+    args = AgentArgs(scenario=sc, scenario_path=MIXED, overrides=(), run_id="mixed", listen="", peers=(),
+                     cavs=("cav0", "cav1", "cav2"), egos=("cav0",), cav="cav0", frames=1, out=str(tmp_path))
+
+    def features(sender: str, space: str, pose: tuple[float, float, float, float]) -> bytes:
+        rng = np.random.default_rng(len(sender))
+        return encode(Message(kind="features", run_id="mixed", sender_id=sender, frame=0, capture_time=0.0,
+                              sender_pose=pose, payload=rng.random((8, 64, 64), dtype=np.float32),
+                              channel_compression=8, space=space))
+
+    class Deliver(FakeBus):
+        def ready(self) -> None:
+            super().ready()
+            for cb in self.subs["features"]:
+                cb("cav1", features("cav1", "sinbevt@sinbevt_tiny:0123456789ab", (20.0, 0.0, 0.0, 0.0)))
+                cb("cav2", features("cav2", f"sinbevt@{feature_space(sc)}", (-20.0, 5.0, 0.0, 0.0)))
+
+    assert ego_mod.ego_loop(args, Deliver(static_to_bytes(static), world_to_bytes(world))) == 0  # type: ignore[arg-type]
+    m = json.loads((tmp_path / "metrics.json").read_text())
+    assert m["frames"] == 1 and m["comm"]["rejected_reasons"] == {"foreign_space": 1}, m["comm"]
+    assert m["comm"]["delivered"] == 1 and m["comm"]["rejected"] == 1
