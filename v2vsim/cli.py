@@ -114,6 +114,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--distill-weight", type=float, default=None,
                    help="`align` stage: weight of the distillation from the LiDAR encoder's map of the same frame "
                         "(default 1; 0: off)")
+    p.add_argument("--distill-focus", type=float, default=None,
+                   help="`align` stage: extra distillation weight on the cells of vehicles the camera saw (cells of "
+                        "vehicles it did not see then weigh 0; default 0: every cell alike)")
     p.add_argument("--val-every", type=int, default=1, help="validate every N epochs (and after the last)")
     p.add_argument("--yaw-jitter", dest="yaw_jitter_deg", type=float, default=None, metavar="DEG",
                    help="camera `single` stage: turn each sample's agent frame by a uniform angle in [-DEG, DEG] "

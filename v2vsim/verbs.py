@@ -149,8 +149,13 @@ def cmd_train(args: argparse.Namespace) -> int:
     from v2vsim.training.train import command_line, main_train
 
     overrides = {k: getattr(args, k) for k in ("epochs", "samples_per_epoch", "batch", "lr", "val_samples",
-                                               "yaw_jitter_deg", "distill_weight")
+                                               "yaw_jitter_deg", "distill_weight",
+                                               "distill_focus")
                  if getattr(args, k) is not None}
+    if args.distill_focus is not None and args.stage != "align":
+        print(f"v2vsim train: --distill-focus is an `align` stage option, not one of --stage {args.stage}",
+              file=sys.stderr)
+        return 2
     extra = {}
     if args.ratios is not None:
         try:

@@ -56,6 +56,9 @@ class AlignSpec:
     blocks: int = 2  # the Aligner's residual blocks
     through: tuple[str, ...] = ("none", "cobevt")  # frozen base methods whose fusion + heads the loss goes through
     distill_weight: float = 1.0  # feature distillation from the LiDAR encoder on the same frame (0: off)
+    # distillation weight of the cells of vehicles the camera saw, over 1 for the background; cells of vehicles it
+    # did not see weigh 0 (a camera cannot know them: pulled towards LiDAR there it would learn to hallucinate)
+    distill_focus: float = 0.0
     lane_weight: float = 3.0  # as every fine-tuning stage of the base
     val_samples: int = 120
     pretrained_lr_scale: float = 0.1  # the camera encoder (already trained) fine-tunes at this x lr
@@ -167,11 +170,24 @@ def align_losses(aligned: AlignedEncoder, methods: dict[str, nn.Module], lidar: 
     if spec.distill_weight > 0:
         with torch.no_grad():
             target = lidar([p[0].to(dev) for p in batch["points"]]).float()
-        losses["distill"] = spec.distill_weight * (feats.float() - target).pow(2).mean() / target.pow(2).mean().clamp(
-            min=1e-6)
+            weight = distill_weights(batch, spec.distill_focus, feats.shape[-1], dev)  # [B, 1, F, F]
+        err = (weight * (feats.float() - target).pow(2)).sum() / (weight.sum() * feats.shape[1]).clamp(min=1.0)
+        losses["distill"] = spec.distill_weight * err / target.pow(2).mean().clamp(min=1e-6)
         total = total + losses["distill"]
     losses["total"] = total
     return losses
+
+
+def distill_weights(batch: dict, focus: float, cells: int, dev: torch.device) -> Tensor:
+    """[B, 1, F, F] per-cell distillation weights: 1 everywhere (focus 0), or 1 + focus on the cells of vehicles the
+    agent's own sensors saw and 0 on those of vehicles it did not see (the masks max-pooled onto the feature grid)."""
+    b = len(batch["valid"])
+    if focus <= 0:
+        return torch.ones(b, 1, cells, cells, device=dev)
+    pool = torch.nn.functional.adaptive_max_pool2d
+    seen = pool(batch["visible_self"][:, None].float(), cells).to(dev)
+    unseen = pool((batch["dynamic"] & ~batch["visible_self"])[:, None].float(), cells).to(dev) * (1 - seen)
+    return (1.0 + focus * seen) * (1.0 - unseen)
 
 
 def validate_aligned(aligned: AlignedEncoder, methods: dict[str, nn.Module], ds: CooperativeDataset, n: int
@@ -309,6 +325,7 @@ def run_align(args: TrainArgs, log=sys.stderr) -> dict:
                        zoo.zoo_entry(args.encoder, args.preset, args.out)) or args.image_backbone
                    or preset_image_backbone(args.encoder, args.preset),
                    "blocks": spec.blocks, "through": list(spec.through), "distill_weight": spec.distill_weight,
+                   "distill_focus": spec.distill_focus,
                    "base": base_files(base_entry, spec.through), "start": start,
                    "trained_parameters": trained, "frozen_base_parameters": frozen},
     }
