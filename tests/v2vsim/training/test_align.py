@@ -121,3 +121,18 @@ def test_a_zoo_without_an_aligned_encoder_names_the_stage(tmp_path) -> None:
         build_aligned_encoder(sc, "sinbevt")
     with pytest.raises(ConfigError, match="random weights have no aligned encoder"):
         build_aligned_encoder(load_scenario(MIXED, ["perception.weights=none"]), "sinbevt")
+
+
+def test_distillation_weights_follow_what_the_camera_saw() -> None:
+    from v2vsim.training.align import distill_weights
+
+    dyn = torch.zeros(1, 256, 256, dtype=torch.bool)
+    dyn[0, 8:12, 8:12] = True  # a vehicle the camera saw: feature cell (2, 2)
+    dyn[0, 100:104, 200:204] = True  # one it did not: cell (25, 50)
+    seen = torch.zeros_like(dyn)
+    seen[0, 8:12, 8:12] = True
+    batch = {"valid": torch.ones(1, 1, dtype=torch.bool), "dynamic": dyn, "visible_self": seen}
+    assert torch.equal(distill_weights(batch, 0.0, 64, torch.device("cpu")), torch.ones(1, 1, 64, 64))
+    w = distill_weights(batch, 10.0, 64, torch.device("cpu"))[0, 0]
+    assert w[2, 2] == 11.0 and w[25, 50] == 0.0 and w[40, 40] == 1.0
+    assert int((w == 0).sum()) == 1 and int((w == 11).sum()) == 1  # 4 x 4 cells of 256 = one cell of 64
