@@ -276,7 +276,7 @@ def build_aligned_encoder(sc: Scenario, encoder: str) -> AlignedEncoder:
     z = zoo_for(sc)
     base = zoo.zoo_name(sc.perception.encoder, sc.perception.preset)
     train = (f"v2vsim train --data CAMERA_DATA --stage align --encoder {encoder} --out "
-             f"{zoo.WEIGHTS_DIR.parent / 'weights' if z is None else z[0]} --work WORK (docs/training.md)")
+             f"{zoo.WEIGHTS_DIR if z is None else z[0]} --work WORK (docs/training.md)")
     if z is None:
         raise ConfigError(f"{sc.source}: cavs.fleet: {encoder} CAVs need the {base} zoo's aligned {encoder} encoder, "
                           f"and perception.weights is {sc.perception.weights!r} (random weights have no aligned "
@@ -298,7 +298,7 @@ def build_aligned_encoder(sc: Scenario, encoder: str) -> AlignedEncoder:
             raise ConfigError(f"{path}: aligned to {base}/{file} sha256 {sha[:12]}…, but the base zoo at {root} has "
                               f"{base}/{file} {'sha256 ' + have[:12] + '…' if have else 'missing'}: a stale pairing; "
                               f"re-align with: {train}")
-    torch.manual_seed(0)  # every weight is loaded below; the seed only makes a failed load reproducible
+    _seed(sc, f"aligned:{encoder}")  # every weight is loaded below, as in every process: the same module anyway
     camera = build_encoder(encoder, sc.perception.preset, bev_size_m=sc.bev.size_m,
                            image_backbone=aligns.get("image_backbone"))
     cells = zoo.zoo_cells(entry, get_preset(sc.perception.preset).cells)
