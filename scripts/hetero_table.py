@@ -3,8 +3,9 @@
     python scripts/hetero_table.py OUT
 
 1. Per fleet and method: vehicle IoU, AP@0.5 / AP@0.7 (means over every complete run: seeds x junctions), and the
-   paired difference in vehicle IoU to the ego alone (`none` of the same run: the same frames and scored vehicles),
-   with its 95 % bootstrap interval over runs (v2vsim.study.stats.interval; a run is a cluster of one value).
+   paired differences in vehicle IoU and AP@0.5 to the ego alone (`none` of the same run: the same frames and scored
+   vehicles), each with its 95 % bootstrap interval over runs (v2vsim.study.stats.interval; a run is a cluster of
+   one value).
 2. The camera-only fleet in the aligned space against the shipped camera zoo: per method, each one's vehicle IoU
    and the paired difference (aligned - zoo) over the same (junction, seed) runs.
 """
@@ -62,8 +63,9 @@ def _diff(pairs: list[float]) -> str:
 
 
 def fleet_table(out: Path) -> None:
-    print("| fleet | method | runs | vehicle IoU | AP@0.5 | AP@0.7 | vehicle IoU − ego alone [95 % CI] |")
-    print("|---|---|---:|---:|---:|---:|---|")
+    print("| fleet | method | runs | vehicle IoU | AP@0.5 | AP@0.7 | vehicle IoU − ego alone [95 % CI] | "
+          "AP@0.5 − ego alone [95 % CI] |")
+    print("|---|---|---:|---:|---:|---:|---|---|")
     for fleet, label in FLEETS.items():
         runs = load(out, fleet)
         if not runs:
@@ -72,9 +74,12 @@ def fleet_table(out: Path) -> None:
         for m in methods:
             have = [per for per in runs.values() if m in per]
             cells = [_fmt(_mean([per[m][k] for per in have])) for k in METRICS]
-            pairs = [per[m]["iou_vehicle"] - per["none"]["iou_vehicle"] for per in have  # type: ignore[operator]
-                     if "none" in per and m != "none"]
-            print(f"| {label} | {m} | {len(have)} | " + " | ".join(cells) + f" | {_diff(pairs) if pairs else ''} |")
+            diffs = []
+            for k in ("iou_vehicle", "ap50"):
+                pairs = [per[m][k] - per["none"][k] for per in have  # type: ignore[operator]
+                         if "none" in per and m != "none" and per[m][k] is not None and per["none"][k] is not None]
+                diffs.append(_diff(pairs) if pairs else "")
+            print(f"| {label} | {m} | {len(have)} | " + " | ".join(cells + diffs) + " |")
 
 
 def camera_table(out: Path) -> None:
