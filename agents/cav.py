@@ -26,12 +26,11 @@ from v2vsim.comm.codec import Message, encode
 from v2vsim.comm.control import DRIVER
 from v2vsim.comm.share import feature_message
 from v2vsim.evaluation.gt import visible_actor_ids
+from v2vsim.perception.aligned import build_cav_encoder, space_label
 from v2vsim.perception.build import (
-    build_cav_encoder,
     build_compressor,
     build_method_models,
     compress,
-    space_label,
     wire_ratio,
 )
 from v2vsim.perception.device import prepare as prepare_device

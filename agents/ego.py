@@ -47,13 +47,13 @@ from v2vsim.evaluation.gt import bev_ground_truth, gt_boxes
 from v2vsim.evaluation.metrics import ApAccumulator, MethodScore, cavs_in_range
 from v2vsim.evaluation.report import RunSummary, write_outputs
 from v2vsim.evaluation.status import final_status, unscored
+from v2vsim.perception.aligned import feature_space
 from v2vsim.perception.build import (
     build_agent_encoder,
     build_compressor,
     build_extrapolation,
     build_method_models,
     decompress,
-    feature_space,
     method_checkpoints,
     runnable_methods,
     wire_ratio,

@@ -63,7 +63,7 @@ def test_a_message_of_a_foreign_space_is_refused_and_counted(tmp_path: Path) -> 
     from tests.v2vsim.sensors._worlds import car, static_map
     from v2vsim.comm.codec import Message, encode
     from v2vsim.config import load_scenario
-    from v2vsim.perception.build import feature_space
+    from v2vsim.perception.aligned import feature_space
     from v2vsim.world.serialize import static_to_bytes, world_to_bytes
     from v2vsim.world.state import WorldState
 

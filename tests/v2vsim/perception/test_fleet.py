@@ -12,13 +12,8 @@ from models.aligner import AlignedEncoder
 from models.registry import is_intermediate
 from tests.v2vsim.perception._clouds import cloud
 from v2vsim.config import load_scenario
-from v2vsim.perception.build import (
-    build_cav_encoder,
-    build_method_models,
-    feature_space,
-    runnable_methods,
-    space_label,
-)
+from v2vsim.perception.aligned import build_cav_encoder, feature_space, space_label
+from v2vsim.perception.build import build_method_models, runnable_methods
 from v2vsim.perception.encode import encode_points
 from v2vsim.perception.fleet import AgentType, agent_type, extra_types
 from v2vsim.recording.world3d import cav_colour
