@@ -225,7 +225,7 @@ def _prepare(rec: Recording, recorded: int, overrides: list[str], out: Path, fra
         raise ConfigError(f"--out {out}: the recorded run's own folder; its metrics.json and report would be "
                           "overwritten: choose another folder")
     check_output_dir(out, "--out")
-    from v2vsim.perception.build import check_scenario
+    from v2vsim.perception.checks import check_scenario
 
     check_scenario(sc)
     from agents.args import AgentArgs

@@ -42,7 +42,8 @@ from v2vsim.comm.identity import issue as issue_identities
 from v2vsim.comm.transport import TransportError, free_ports, loopback_endpoint, open_session
 from v2vsim.config import ConfigError, Scenario, check_output_dir
 from v2vsim.evaluation.status import cav_ranges, terminal_line
-from v2vsim.perception.build import check_scenario, method_checkpoints, runnable_methods, zoo_for
+from v2vsim.perception.build import method_checkpoints, runnable_methods, zoo_for
+from v2vsim.perception.checks import check_scenario
 from v2vsim.perception.fleet import fleet_types
 from v2vsim.run_outcome import ego_statuses, write_failure_metrics
 from v2vsim.sensors.sensing import ego_ids

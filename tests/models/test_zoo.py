@@ -13,7 +13,8 @@ import torch
 from models import zoo
 from models.registry import METHODS
 from v2vsim.config import ConfigError, load_scenario
-from v2vsim.perception.build import build_agent_encoder, build_method_models, check_scenario
+from v2vsim.perception.build import build_agent_encoder, build_method_models
+from v2vsim.perception.checks import check_scenario
 
 # What each shipped zoo must hold: every method of its modality (a camera zoo has no early fusion: it ships
 # LiDAR points), and the scenario that runs it out of the box. LaRa, the second camera encoder, ships the

@@ -29,9 +29,9 @@ from models.compression import ChannelCompressor
 from models.extrapolation import FeatureExtrapolation
 from models.presets import get_preset
 from models.registry import MODALITY, is_intermediate, is_plugin, plugin_weights
-from v2vsim.config import ConfigError, Scenario, check_plugins
-from v2vsim.perception.device import model_device, resolve_device, to_host
-from v2vsim.perception.fleet import agent_type, extra_types
+from v2vsim.config import ConfigError, Scenario
+from v2vsim.perception.device import model_device, to_host
+from v2vsim.perception.fleet import agent_type
 
 
 def zoo_for(sc: Scenario) -> tuple[Path, dict] | None:
@@ -241,32 +241,6 @@ def ego_ids(sc: Scenario) -> tuple[str, ...]:
     if sc.cavs.ego == "first":
         return ids[:1]
     return ids if sc.cavs.ego == "all" else tuple(sc.cavs.ego)
-
-
-def check_scenario(sc: Scenario) -> None:
-    """Model-dependent checks the schema cannot make; ConfigError before any process starts."""
-    try:  # the loader imports no torch: whether this host has the device asked for is known only here
-        resolve_device(sc.perception.device)
-    except ConfigError as e:
-        raise ConfigError(f"{sc.source}: {e}") from None
-    check_plugins(sc)
-    channels = get_preset(sc.perception.preset).channels
-    ratio = wire_ratio(sc)
-    if channels % ratio:
-        raise ConfigError(f"{sc.source}: comm.channel_compression: {ratio} does not divide the {channels} feature "
-                          f"channels of preset {sc.perception.preset!r}; allowed: a divisor of {channels}")
-    build_compressor(sc, channels)
-    if not runnable_methods(sc):
-        raise ConfigError(f"{sc.source}: perception.methods: nothing to run for modality "
-                          f"{sc.perception.modality!r} (early fusion needs LiDAR)")
-    from v2vsim.perception.aligned import build_aligned_encoder  # (it builds on this module)
-
-    for t in extra_types(sc):  # a mixed fleet: each type's aligned encoder, verified against this base
-        build_aligned_encoder(sc, t.encoder)
-    # every checkpoint a process loads is verified (sha256, and that it fits its model) before any starts;
-    # building the models reads each file once (~0.3 s for the tiny zoo)
-    if zoo_for(sc) is not None:
-        build_method_models(sc, build_agent_encoder(sc), runnable_methods(sc))
 
 
 def build_compressor(sc: Scenario, channels: int) -> ChannelCompressor | None:

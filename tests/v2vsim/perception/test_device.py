@@ -14,7 +14,8 @@ from models.compression import ChannelCompressor
 from tests.v2vsim.perception._clouds import cloud
 from v2vsim.config import ConfigError, load_scenario
 from v2vsim.perception import device as D
-from v2vsim.perception.build import check_scenario, compress, decompress
+from v2vsim.perception.build import compress, decompress
+from v2vsim.perception.checks import check_scenario
 from v2vsim.perception.encode import encode_points, late_outputs
 from v2vsim.perception.fuse import FusionInputs, predict
 

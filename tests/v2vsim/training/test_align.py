@@ -19,7 +19,7 @@ from models.heads import AnchorTargetAssigner
 from v2vsim.config import ConfigError, load_scenario
 from v2vsim.data.torch_dataset import CooperativeDataset, collate
 from v2vsim.perception.aligned import build_aligned_encoder, build_cav_encoder
-from v2vsim.perception.build import check_scenario
+from v2vsim.perception.checks import check_scenario
 from v2vsim.training.align import AlignSpec, align_losses, build_align_models, run_align
 from v2vsim.training.stages import TrainArgs, wire_compressor
 

@@ -19,13 +19,13 @@ from v2vsim.perception.build import (
     build_agent_encoder,
     build_compressor,
     build_method_models,
-    check_scenario,
     compress,
     decompress,
     fusion_cells,
     method_checkpoints,
     wire_ratio,
 )
+from v2vsim.perception.checks import check_scenario
 from v2vsim.training.stages import TrainArgs
 from v2vsim.training.train import main_train, run_stage
 
