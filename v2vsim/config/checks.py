@@ -53,13 +53,18 @@ def _check_cross_fields(sc: Scenario, loader: _Loader) -> None:
             _check_endpoint(ep, f"transport.{name}[{i}]", loader)
 
 
+def _cav_ids(sc: Scenario) -> tuple[list[str], str]:
+    """The run's CAV ids (v2vsim.traffic.base.cav_id), and how an error lists them."""
+    ids = [f"cav{i}" for i in range(sc.cavs.count)]
+    return ids, ", ".join(ids) if len(ids) <= 4 else f"{ids[0]}..{ids[-1]}"
+
+
 def _check_egos(sc: Scenario, loader: _Loader) -> None:
     """An ego id that is no CAV of the run would leave the run without an ego (nothing fused, no report);
     one listed twice would start two processes with the same name."""
     if not isinstance(sc.cavs.ego, tuple):
         return
-    ids = [f"cav{i}" for i in range(sc.cavs.count)]  # v2vsim.traffic.base.cav_id
-    allowed = ", ".join(ids) if len(ids) <= 4 else f"{ids[0]}..{ids[-1]}"
+    ids, allowed = _cav_ids(sc)
     for i, ego in enumerate(sc.cavs.ego):
         if ego not in ids:
             loader.fail(f"cavs.ego[{i}]", f"{ego!r} is not a CAV of this run (cavs.count is {sc.cavs.count}); "
@@ -73,8 +78,7 @@ def _check_fleet(sc: Scenario, loader: _Loader) -> None:
     fuses in the LiDAR zoo's space (perception.encoder pointpillars, the base its types are aligned to)."""
     if not sc.cavs.fleet:
         return
-    ids = [f"cav{i}" for i in range(sc.cavs.count)]  # v2vsim.traffic.base.cav_id
-    allowed = ", ".join(ids) if len(ids) <= 4 else f"{ids[0]}..{ids[-1]}"
+    ids, allowed = _cav_ids(sc)
     if sc.perception.encoder != "pointpillars":
         loader.fail("cavs.fleet", f"a mixed fleet fuses in the LiDAR zoo's feature space, the base its agent types are "
                     f"aligned to (the `align` stage); perception.encoder is {sc.perception.encoder!r}; allowed: "

@@ -13,7 +13,7 @@ from models.aligner import build_aligned_encoder as build_aligned
 from models.build import build_encoder
 from models.presets import get_preset
 from v2vsim.config import ConfigError, Scenario
-from v2vsim.perception.build import _file_sha, _seed, build_agent_encoder, zoo_for
+from v2vsim.perception.build import _file_sha, _seed, build_agent_encoder, load_part, zoo_for
 from v2vsim.perception.fleet import agent_type, base_type, is_mixed
 
 
@@ -75,10 +75,5 @@ def build_aligned_encoder(sc: Scenario, encoder: str) -> AlignedEncoder:
                            image_backbone=aligns.get("image_backbone"))
     cells = zoo.zoo_cells(entry, get_preset(sc.perception.preset).cells)
     module = build_aligned(camera, get_preset(sc.perception.preset).channels, cells, aligns.get("blocks", 2))
-    try:
-        module.load_state_dict({k[len("encoder."):]: v for k, v in state.items() if k.startswith("encoder.")})
-    except RuntimeError as e:
-        reason = " ".join(str(e).split())
-        raise ConfigError(f"{path}: the aligned {encoder} weights do not fit this version of the model "
-                          f"({reason[:300]}); re-align with: {train}") from None
+    load_part(module, state, "encoder.", path, f"the aligned {encoder} encoder", f"re-align with: {train}")
     return module.eval()

@@ -32,6 +32,8 @@ from models.registry import MODALITY, is_intermediate, is_plugin, plugin_weights
 from v2vsim.config import ConfigError, Scenario
 from v2vsim.perception.device import model_device, to_host
 from v2vsim.perception.fleet import agent_type
+from v2vsim.sensors.sensing import ego_ids
+from v2vsim.traffic.base import cav_id
 
 
 def zoo_for(sc: Scenario) -> tuple[Path, dict] | None:
@@ -230,17 +232,10 @@ def runnable_methods(sc: Scenario) -> tuple[str, ...]:
     """perception.methods less what the modality cannot run: early fusion ships LiDAR points, so it needs a LiDAR
     base and, in a mixed fleet, egos that carry a LiDAR (a camera neighbour sends no points: the LiDAR CAVs'
     clouds are merged without it)."""
-    camera_ego = any(agent_type(sc, e).modality != "lidar" for e in ego_ids(sc))
+    egos = ego_ids(sc, [cav_id(i) for i in range(sc.cavs.count)])
+    camera_ego = any(agent_type(sc, e).modality != "lidar" for e in egos)
     return tuple(m for m in sc.perception.methods
                  if m != "early" or (sc.perception.modality == "lidar" and not camera_ego))
-
-
-def ego_ids(sc: Scenario) -> tuple[str, ...]:
-    """The CAV ids that are egos (cavs.ego: first, all or a list)."""
-    ids = tuple(f"cav{i}" for i in range(sc.cavs.count))  # v2vsim.traffic.base.cav_id
-    if sc.cavs.ego == "first":
-        return ids[:1]
-    return ids if sc.cavs.ego == "all" else tuple(sc.cavs.ego)
 
 
 def build_compressor(sc: Scenario, channels: int) -> ChannelCompressor | None:
@@ -271,13 +266,20 @@ def build_compressor(sc: Scenario, channels: int) -> ChannelCompressor | None:
     except zoo.ZooError as e:
         raise ConfigError(str(e)) from None
     comp = ChannelCompressor(channels, ratio)
+    load_part(comp, state, "compressor.", path, f"the ratio-{ratio} compressor",
+              f"rebuild it with: {zoo.rebuild_command(path, entry)}")
+    return comp.eval()
+
+
+def load_part(module: nn.Module, state: dict, prefix: str, path: Path, what: str, remedy: str) -> None:
+    """Load the `prefix` part of a verified checkpoint's `state` (read from `path`) into `module`; ConfigError naming
+    the file, `what` does not fit and the `remedy` when it was made for another version of the model (missing,
+    unknown or resized weights)."""
     try:
-        comp.load_state_dict({k[len("compressor."):]: v for k, v in state.items() if k.startswith("compressor.")})
+        module.load_state_dict({k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)})
     except RuntimeError as e:
         reason = " ".join(str(e).split())
-        raise ConfigError(f"{path}: the ratio-{ratio} compressor does not fit this model ({reason[:300]}); rebuild "
-                          f"it with: {zoo.rebuild_command(path, entry)}") from None
-    return comp.eval()
+        raise ConfigError(f"{path}: {what} does not fit this version of the model ({reason[:300]}); {remedy}") from None
 
 
 @torch.no_grad()

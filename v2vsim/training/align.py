@@ -34,6 +34,7 @@ from models.heads import AnchorTargetAssigner
 from models.registry import MODALITY
 from v2vsim.data.layout import DatasetError, runs_of
 from v2vsim.data.torch_dataset import CooperativeDataset, collate
+from v2vsim.training.loop import CHECKPOINT_EVERY_S, Checkpoint, Progress, one_cycle
 from v2vsim.training.losses import perception_loss
 from v2vsim.training.prepare import check_dataset_has_cameras
 from v2vsim.training.stages import TrainArgs, _prefixed, wire_compressor
@@ -41,7 +42,6 @@ from v2vsim.training.validate import evaluate_samples
 
 ALIGN = "align"
 BASE_ENCODER = "pointpillars"
-CHECKPOINT_EVERY_S = 300.0
 
 
 @dataclass(frozen=True)
@@ -234,24 +234,10 @@ def run_align(args: TrainArgs, log=sys.stderr) -> dict:
                              stride=2, seed=args.seed)
     groups = _param_groups(aligned, spec, bool(start))
     params = [p for g in groups for p in g["params"]]
-    opt = torch.optim.AdamW(groups, lr=spec.lr, weight_decay=1e-2)
-    steps_per_epoch = max(1, spec.samples_per_epoch // spec.batch)
-    total = steps_per_epoch * spec.epochs
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=[g["lr"] for g in groups], total_steps=total,
-                                                pct_start=0.1)
-    anchors = next(iter(methods.values())).anchors
-    assigner = AnchorTargetAssigner(anchors)
-    work = args.work / f"{ALIGN}_{args.encoder}"
-    work.mkdir(parents=True, exist_ok=True)
-    last = work / "last.pt"
-    epoch, step, wall, history = 0, 0, 0.0, []
-    if args.resume and last.is_file():
-        ck = torch.load(last, map_location="cpu", weights_only=False)
-        aligned.load_state_dict(ck["model"])
-        opt.load_state_dict(ck["opt"])
-        sched.load_state_dict(ck["sched"])
-        epoch, step, wall, history = ck["epoch"], ck["step"], ck["wall_s"], ck["history"]
-        print(f"[{ALIGN}] resuming at epoch {epoch + 1}, step {step}", file=log, flush=True)
+    opt, sched, steps_per_epoch, total = one_cycle(groups, spec.lr, spec.epochs, spec.samples_per_epoch, spec.batch)
+    assigner = AnchorTargetAssigner(next(iter(methods.values())).anchors)
+    ckpt = Checkpoint(args.work / f"{ALIGN}_{args.encoder}", ALIGN)
+    epoch, step, wall, history = ckpt.resume(aligned, opt, sched, args.resume, log)
     trained = sum(p.numel() for p in aligned.parameters())
     frozen = sum(p.numel() for m in methods.values() for p in [*m.fusion.parameters(), *m.heads.parameters()])
     print(f"[{ALIGN}] {args.encoder} -> {zoo.zoo_name(BASE_ENCODER, args.preset)}: training {trained:,} parameters "
@@ -259,15 +245,12 @@ def run_align(args: TrainArgs, log=sys.stderr) -> dict:
           f"{frozen:,} ({', '.join(spec.through)}), distill weight {spec.distill_weight}", file=log, flush=True)
 
     def save(ep: int, st: int) -> None:
-        tmp = work / "last.tmp"
-        torch.save({"model": aligned.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
-                    "epoch": ep, "step": st, "wall_s": wall + time.monotonic() - t_seg, "history": history,
-                    "spec": dataclasses.asdict(spec)}, tmp)
-        tmp.replace(last)
+        ckpt.save(aligned, opt, sched, ep, st, wall + time.monotonic() - t_seg, history, dataclasses.asdict(spec))
 
     t_seg = time.monotonic()
     last_save = t_seg
-    t_log, samples = 0.0, 0
+    prog = Progress(ALIGN, total, epoch * steps_per_epoch + step, log)
+    samples = 0
     while epoch < spec.epochs:
         aligned.train()
         perm = np.resize(np.random.default_rng([args.seed, epoch]).permutation(len(train)),
@@ -285,16 +268,8 @@ def run_align(args: TrainArgs, log=sys.stderr) -> dict:
             samples += spec.batch
             for k, v in losses.items():
                 running[k] = 0.9 * running.get(k, float(v.detach())) + 0.1 * float(v.detach())
-            now = time.monotonic()
-            if now - t_log > 10.0:
-                t_log = now
-                done = epoch * steps_per_epoch + s + 1
-                rate = samples / max(now - t_seg, 1e-9)
-                eta = (total - done) * spec.batch / max(rate, 1e-9) / 60
-                print(f"[{ALIGN}] epoch {epoch + 1}/{spec.epochs} step {done}/{total}  loss "
-                      + " ".join(f"{k} {v:.4g}" for k, v in running.items())
-                      + f"  {rate:.1f} samples/s  ETA {eta:.1f} min", file=log, flush=True)
-            if now - last_save > CHECKPOINT_EVERY_S:
+            prog.show(epoch * steps_per_epoch + s + 1, samples, epoch, spec.epochs, running)
+            if time.monotonic() - last_save > CHECKPOINT_EVERY_S:
                 save(epoch, s + 1)
                 last_save = time.monotonic()
         metrics = validate_aligned(aligned, methods, val, spec.val_samples)

@@ -46,6 +46,7 @@ from v2vsim.training.cache import (
 )
 from v2vsim.training.export import export
 from v2vsim.training.extrapolate import extrapolate_batch
+from v2vsim.training.loop import CHECKPOINT_EVERY_S, Checkpoint, Progress, one_cycle
 from v2vsim.training.losses import distill_loss, perception_loss
 from v2vsim.training.prepare import (
     cache_encoder,
@@ -75,7 +76,6 @@ from v2vsim.training.stages import (
 )
 from v2vsim.training.validate import validate
 
-CHECKPOINT_EVERY_S = 300.0
 CACHE_STRIDE = 1
 
 
@@ -114,25 +114,6 @@ def forward(model: nn.Module, spec: StageSpec, batch: dict, cache: FeatureCache 
         fused = model.fuse(feats, rel, valid)
         return {"fused": fused, **model.heads(fused)}
     return model(*tensor_inputs(batch, dev))
-
-
-class Progress:
-    def __init__(self, stage: str, total: int, done: int, log) -> None:
-        self.stage, self.total, self.start_done, self.log = stage, total, done, log
-        self.t0 = time.monotonic()
-        self.last = 0.0
-
-    def show(self, done: int, samples: int, epoch: int, epochs: int, losses: dict[str, float], force: bool = False
-             ) -> None:
-        now = time.monotonic()
-        if not force and now - self.last < 10.0:
-            return
-        self.last = now
-        rate = samples / max(now - self.t0, 1e-9)
-        left = (self.total - done) * (samples / max(done - self.start_done, 1)) / max(rate, 1e-9)
-        parts = " ".join(f"{k} {v:.4g}" for k, v in losses.items())
-        print(f"[{self.stage}] epoch {epoch + 1}/{epochs} step {done}/{self.total}  loss {parts}  "
-              f"{rate:.1f} samples/s  ETA {left / 60:.1f} min", file=self.log, flush=True)
 
 
 def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
@@ -201,34 +182,13 @@ def run_stage(args: TrainArgs, log=sys.stderr) -> dict:
         teacher = teacher.to(dev).eval()
     groups = param_groups(model, spec)
     params = [p for g in groups for p in g["params"]]
-    opt = torch.optim.AdamW(groups, lr=spec.lr, weight_decay=1e-2)
-    steps_per_epoch = max(1, spec.samples_per_epoch // spec.batch)
-    total = steps_per_epoch * spec.epochs
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=[g["lr"] for g in groups], total_steps=total,
-                                                pct_start=0.1)
+    opt, sched, steps_per_epoch, total = one_cycle(groups, spec.lr, spec.epochs, spec.samples_per_epoch, spec.batch)
     assigner = AnchorTargetAssigner(model.anchors) if model.heads.detection is not None else None
-    work = stage_file(args, stage_dir(spec)).parent
-    work.mkdir(parents=True, exist_ok=True)
-    last = work / "last.pt"
-    epoch, step, wall, history = 0, 0, 0.0, []
-    if args.resume and last.is_file():
-        ck = torch.load(last, map_location="cpu", weights_only=False)
-        model.load_state_dict(ck["model"])
-        opt.load_state_dict(ck["opt"])
-        sched.load_state_dict(ck["sched"])
-        epoch, step, wall, history = ck["epoch"], ck["step"], ck["wall_s"], ck["history"]
-        print(f"[{spec.name}] resuming at epoch {epoch + 1}, step {step}", file=log)
-    elif last.is_file() and not args.resume:
-        print(f"[{spec.name}] starting over ({last} exists; --resume continues it)", file=log)
-    elif args.resume:
-        print(f"[{spec.name}] --resume: nothing to resume ({last} does not exist): starting from scratch", file=log)
+    ckpt = Checkpoint(stage_file(args, stage_dir(spec)).parent, spec.name)
+    epoch, step, wall, history = ckpt.resume(model, opt, sched, args.resume, log)
 
     def save(ep: int, st: int) -> None:
-        tmp = work / "last.tmp"
-        torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
-                    "epoch": ep, "step": st, "wall_s": wall + time.monotonic() - t_seg, "history": history,
-                    "spec": dataclasses.asdict(spec)}, tmp)
-        tmp.replace(last)
+        ckpt.save(model, opt, sched, ep, st, wall + time.monotonic() - t_seg, history, dataclasses.asdict(spec))
 
     t_seg = time.monotonic()
     last_save = t_seg
