@@ -42,6 +42,7 @@ from v2vsim.comm.control import (
     CONTROL_KINDS,
     DRIVER,
     ENVELOPE_BYTES,
+    MAX_CONTROL_BYTES,
     ControlPolicy,
     ReplayGuard,
     max_payload_bytes,
@@ -82,6 +83,7 @@ class Bus:
         self._rejected: Counter[tuple[str, str]] = Counter()
         self._warned: set[str] = set()
         self._byes: dict[str, dict[str, Any]] = {}
+        self._last_words: dict[str, Any] = {}  # what say_bye adds to this process's bye (leave_word)
         self._hello_at: dict[str, float] = {}  # process name -> time.monotonic() of its latest signed hello
         self._silent: set[str] = set()  # proven processes whose hellos stopped (gone, token or not)
         self._closing = threading.Event()
@@ -257,10 +259,19 @@ class Bus:
         """The driver joined and its liveliness token has dropped (ended or died)."""
         return self.was_alive(DRIVER) and not self.is_alive(DRIVER)
 
+    def leave_word(self, **doc: Any) -> None:
+        """Fields this process's bye will carry beside its name, code and reason (the driver's SSM conflicts and
+        refusals, for egos that stop before its `done`); the whole bye stays within MAX_CONTROL_BYTES."""
+        self._last_words.update(doc)
+
     def say_bye(self, code: int, why: str = "") -> None:
         """Tell the run this process ends on its own (best effort: the session may be failing)."""
+        doc = {"name": self.name, "code": int(code), "why": why[:200]}
+        payload = json.dumps({**self._last_words, **doc}).encode()
+        if len(payload) > MAX_CONTROL_BYTES - ENVELOPE_BYTES:  # too long to be taken: the plain bye instead
+            payload = json.dumps(doc).encode()
         try:
-            self.put("bye", json.dumps({"name": self.name, "code": int(code), "why": why[:200]}).encode())
+            self.put("bye", payload)
         except Exception:  # a bye that cannot be sent is a death the others will notice
             pass
 

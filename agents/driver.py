@@ -183,15 +183,27 @@ def drive(args: AgentArgs, bus: Bus) -> int:
             report_progress("driver", k + 1, frames)
         if sc.transport.clock != "realtime":
             wait_acks(frames - 1)  # CAVs end on `done`: not before the egos have everything they need
-        done: dict = {"frames": frames}
-        if closed_loop:  # SUMO writes its SSM log as it closes: its conflicts go to the egos with the done
-            backend.close()
-            done["ssm_conflicts"] = ssm_conflicts(Path(ssm_file) if ssm_file else None)
-        bus.put("done", json.dumps(done).encode())
+        bus.put("done", json.dumps({"frames": frames, **final_word(bus, backend, closed_loop, ssm_file)}).encode())
     finally:
-        backend.close()
+        # Stopped (Ctrl-C) or failed: the egos write what they have, and take the SSM conflicts and refusals from
+        # this process's bye instead of its done (agents.ego.driver_word).
+        bus.leave_word(**final_word(bus, backend, closed_loop, ssm_file))
         write_timing(args.out, "driver", timer, bus.control_rejections())
     return 0
+
+
+def final_word(bus: Bus, backend: object, closed_loop: bool, ssm_file: str | None) -> dict:
+    """What the driver tells the egos as it ends (with its done, or its bye): the control messages it refused
+    ({kind: {reason: n}}: forged, replayed or impossible acks and commands) and, in a closed loop, SUMO's SSM
+    conflicts per vehicle. SUMO writes its SSM log as it closes, so this closes the backend."""
+    backend.close()  # type: ignore[attr-defined]
+    refused: dict[str, dict[str, int]] = {}
+    for (kind, reason), n in sorted(bus.control_rejections().items()):
+        refused.setdefault(kind, {})[reason] = n
+    word: dict = {"control_rejections": refused}
+    if closed_loop:
+        word["ssm_conflicts"] = ssm_conflicts(Path(ssm_file) if ssm_file else None)
+    return word
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import sys
 import time
+from collections import Counter
 from functools import partial
 from pathlib import Path
 
@@ -27,7 +28,7 @@ import numpy as np
 import torch
 
 from agents.args import AgentArgs, parse_agent_args, run_signer
-from agents.bus import START_TIMEOUT_S, Bus
+from agents.bus import DRIVER_GRACE_S, START_TIMEOUT_S, Bus
 from agents.ego_collect import bytes_for, collect, control_rejections, reject_leftovers
 from agents.ego_mailbox import Mailbox, Window, cav_died, notify, put_world, set_done, wait_messages, wait_world
 from agents.ego_replay import ReplayBus
@@ -96,18 +97,51 @@ def largest_message(sc: Scenario, encoder: torch.nn.Module) -> int | None:
     return max([*sizes, MAX_VIS_BYTES, max_scan_bytes(sc), MAX_WORLD_BYTES, MAX_STATIC_BYTES])  # type: ignore[list-item]
 
 
-DONE_WAIT_S = 10.0  # closed loop: how long the ego waits for the driver's done, which carries SUMO's SSM log
+DONE_WAIT_S = 10.0  # how long an ego at the end of its run waits for the driver's done (SUMO closing, its SSM log)
+STOPPING_WAIT_S = 1.5  # the same for an ego that is stopping (Ctrl-C, the driver gone): the runner's grace is 5 s
 
 
-def driving_summary(sc: Scenario, me: str, pilot: Pilot, box: Mailbox, done_doc: dict, replayed: bool) -> dict:
-    """metrics.json `driving` of this ego's vehicle. SUMO writes its SSM log when the simulation closes, after the
-    last frame: the driver counts its conflicts and says them with its done, which the ego waits for briefly."""
-    assert sc.control is not None
-    deadline = time.monotonic() + (0.0 if replayed else DONE_WAIT_S)
+def driver_word(box: Mailbox, bus: Bus, done_doc: dict, wait_s: float) -> dict:
+    """What the driver said as it ended: its done ({frames, control_rejections, ssm_conflicts}), or, when it stopped
+    or failed first, the same fields in its bye; {} when it died without a word. Waits at most `wait_s`, and not
+    once the driver's token has been gone for DRIVER_GRACE_S: a killed driver says nothing more."""
+    deadline = time.monotonic() + wait_s
+    gone_at = None
     with box.cond:
-        while not box.done and time.monotonic() < deadline:
+        while not box.done:
+            if bus.farewell(DRIVER) is not None:
+                break
+            now = time.monotonic()
+            if bus.driver_gone():
+                gone_at = gone_at or now
+                if now - gone_at > DRIVER_GRACE_S:
+                    break
+            if now >= deadline:
+                break
             box.cond.wait(0.1)
-    conflicts = done_doc.get("ssm_conflicts")
+    if box.done:
+        return done_doc
+    return bus.farewell(DRIVER) or {}
+
+
+def driver_refusals(word: dict) -> dict[tuple[str, str], int]:
+    """The control messages the driver refused, from its final word, keyed as the ego's own (kind@driver, reason)
+    so that metrics.json comm.rejected_reasons and the report count them too."""
+    out: dict[tuple[str, str], int] = {}
+    refused = word.get("control_rejections")
+    for kind, reasons in (refused.items() if isinstance(refused, dict) else ()):
+        for reason, n in (reasons.items() if isinstance(reasons, dict) else ()):
+            if isinstance(n, int) and n > 0:
+                out[(f"{kind}@driver", str(reason))] = n
+    return out
+
+
+def driving_summary(sc: Scenario, me: str, pilot: Pilot, word: dict) -> dict:
+    """metrics.json `driving` of this ego's vehicle. SUMO writes its SSM log when the simulation closes, after the
+    last frame: the driver counts its conflicts and says them as it ends (`word`, from driver_word); None when it
+    never said them (it died)."""
+    assert sc.control is not None
+    conflicts = word.get("ssm_conflicts")
     count = conflicts.get(me, 0) if isinstance(conflicts, dict) else None
     c = sc.control
     header = {"method": c.method, "planner": c.planner, "driven": [me],
@@ -361,6 +395,7 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
             # a run through every frame that lost agents or scored nothing for a method says so (a replay too:
             # its lost agents are the recording's, from the same frames)
             ious = {m: (s.vehicle.iou, s.vehicle_all.iou, s.road.iou, s.lane.iou) for m, s in scores.items()}
+            went_to_end = status == "complete"
             status = final_status(status, lost, unscored(ious))
             summary.timing = timer.to_json() | {"fusion_threads": threads}
             summary.frames = frames_done
@@ -369,15 +404,21 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
             summary.wall_s = time.monotonic() - t_start
             summary.lost_agents = dict(lost)
             summary.feature_bytes = dict(inboxes["features"].bytes_by_sender)
+            # the driver's last word (its SSM conflicts and refusals): waited for only live; long only where the
+            # driving block needs SUMO's SSM log and the run went to its end (the other egos may still be fusing)
+            wait_s = (0.0 if replay is not None else DONE_WAIT_S if pilot is not None and went_to_end
+                      else STOPPING_WAIT_S)
+            word = driver_word(box, bus, done_doc, wait_s)
             if pilot is not None:
-                summary.driving = driving_summary(sc, me, pilot, box, done_doc, replay is not None)
+                summary.driving = driving_summary(sc, me, pilot, word)
+            control = Counter(bus.control_rejections()) + Counter(driver_refusals(word))
             by_kind = {kind: ib.stats for kind, ib in inboxes.items()}
-            by_kind["control"] = control_rejections(bus, stats)
+            by_kind["control"] = control_rejections(control, stats)
             write_outputs(out_dir, summary, scores, stats, by_kind, box_iou)
             if recorder is not None:
                 recorder.close()
             if tape is not None:
-                tape.close(status=status, lost=lost, control=bus.control_rejections())
+                tape.close(status=status, lost=lost, control=dict(control))
             if replay is not None:
                 replay.close()
         if late_error is not None:

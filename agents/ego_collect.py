@@ -7,11 +7,11 @@ from __future__ import annotations
 import json
 import sys
 from collections import Counter
+from collections.abc import Mapping
 
 import numpy as np
 
 from agents.args import AgentArgs
-from agents.bus import Bus
 from agents.ego_mailbox import SIDE_KINDS, Mailbox
 from v2vsim.comm.codec import Message
 from v2vsim.comm.inbox import Inbox, distance
@@ -135,10 +135,11 @@ def _moved_outputs(outputs: tuple[np.ndarray, np.ndarray], msg: Message, pose: t
     return compensate_outputs(OutputMessage(*outputs, pose, msg.capture_time), old, age_s, bev_size_m=bev_size_m)
 
 
-def control_rejections(bus: Bus, total: CommStats) -> CommStats:
-    """The control messages (done, world, vis, ...) the bus dropped, also counted in comm.rejected."""
+def control_rejections(refused: Mapping[tuple[str, str], int], total: CommStats) -> CommStats:
+    """The control messages (done, world, vis, ...) this ego's bus dropped, and those the driver did (acks, commands:
+    kinds `<kind>@driver`), also counted in comm.rejected."""
     control = CommStats()
-    for (_kind, reason), n in bus.control_rejections().items():
+    for (_kind, reason), n in refused.items():
         control.rejected_reasons[reason] += n
         total.rejected_reasons[reason] += n
     return control

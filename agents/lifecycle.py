@@ -15,8 +15,12 @@ from v2vsim.comm.control import ENVELOPE_BYTES, ControlPolicy
 from v2vsim.comm.transport import TransportError, open_session
 
 
-class Stop(Exception):
-    """Raised in the main thread on SIGINT/SIGTERM so that `finally` blocks run and files get written."""
+class Stop(BaseException):
+    """Raised in the main thread on SIGINT/SIGTERM so that `finally` blocks run and files get written.
+
+    A BaseException, as KeyboardInterrupt is: it may be raised inside any code the main thread runs, and code that
+    turns every Exception into a result must not swallow it (the codec's "a bug or an input no check foresaw is a
+    rejection" turned a Ctrl-C during a decode into a `bad_header` rejection, and the ego went on)."""
 
 
 def _raise_stop(signum: int, frame: object) -> None:

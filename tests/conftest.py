@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import compileall
+import subprocess
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -15,10 +16,44 @@ REPO = Path(__file__).resolve().parents[1]
 def pytest_configure(config: pytest.Config) -> None:
     """Byte-compile the checkout once, in the controller, before any worker starts: the suite starts some hundred
     agent processes, and where PYTHONDONTWRITEBYTECODE is set (as on this machine) each of them would compile
-    every module of the harness from source again (~0.3 s of CPU a process)."""
+    every module of the harness from source again (~0.3 s of CPU a process). And note what the checkout holds
+    besides its tracked files, for the guard at the end (pytest_sessionfinish)."""
     if not hasattr(config, "workerinput"):  # not in an xdist worker
         for package in ("v2vsim", "agents", "models"):
             compileall.compile_dir(REPO / package, quiet=1)
+        config.stash[_CHECKOUT_BEFORE] = checkout_changes()
+
+
+# Written by tools, not by the suite's runs: byte code, caches, the editable install's metadata.
+_TOOL_DEBRIS = ("__pycache__", ".pytest_cache", ".ruff_cache", ".egg-info")
+_CHECKOUT_BEFORE = pytest.StashKey[set[str]]()
+
+
+def checkout_changes() -> set[str]:
+    """`git status` of the checkout, ignored files included, one entry per file: what differs from the last commit
+    (tool debris aside). Empty set where this is not a git checkout (a wheel's tests have nothing to guard)."""
+    try:
+        out = subprocess.run(["git", "status", "--porcelain", "--ignored", "--untracked-files=all", "-z"], cwd=REPO,
+                             capture_output=True, check=True, timeout=60).stdout.decode("utf-8", "replace")
+    except (OSError, subprocess.SubprocessError):
+        return set()
+    return {e for e in out.split("\0") if e and not any(d in e for d in _TOOL_DEBRIS)}
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    """No test writes into the checkout (issue 52: a SUMO SSM log, ssm_cav0.xml, was once committed at its root):
+    a file the suite created, changed or deleted there fails the run, named."""
+    config = session.config
+    if hasattr(config, "workerinput") or _CHECKOUT_BEFORE not in config.stash:
+        return
+    stray = sorted(checkout_changes() - config.stash[_CHECKOUT_BEFORE])
+    if stray:
+        reporter = config.pluginmanager.get_plugin("terminalreporter")
+        if reporter is not None:
+            reporter.ensure_newline()
+            reporter.write_line(f"the suite wrote into the checkout ({len(stray)}; tests must write under tmp_path): "
+                                + ", ".join(stray[:20]), red=True)
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
 
 
 # Tests that start real processes or install packages, longest first (pytest --durations). xdist's default (load)

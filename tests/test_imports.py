@@ -106,3 +106,26 @@ def test_no_import_circle() -> None:
 def test_a_circle_is_found() -> None:
     assert circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
     assert circles({"a": {"b"}, "b": set()}) == []
+
+
+def upward_imports(package: str, above: tuple[str, ...]) -> list[str]:
+    """`file:line imported` for every import, at any depth of the code, of a package in `above` by a Python file
+    anywhere under `package`/ (candidates' folders and scripts included, not only the import package's modules)."""
+    found = []
+    for f in sorted((REPO / package).rglob("*.py")):
+        for node in ast.walk(ast.parse(f.read_text())):
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and not node.level:
+                names = [node.module or ""]
+            else:
+                continue
+            found += [f"{f.relative_to(REPO)}:{node.lineno} {n}" for n in names if n.split(".")[0] in above]
+    return found
+
+
+def test_models_import_nothing_of_the_harness() -> None:
+    """issue 52: models/ holds models; the data flow runs v2vsim/agents -> models, never back (experiment scripts
+    that drive the trainer live under scripts/)."""
+    found = upward_imports("models", ("v2vsim", "agents"))
+    assert not found, "models/ imports the harness: " + "; ".join(found)

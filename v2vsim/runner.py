@@ -123,6 +123,10 @@ def run(sc: Scenario, out: Path, frames: int | None = None, remote_cavs: tuple[s
     if unknown:  # it would print an agent command that cannot join and run every CAV here
         raise ConfigError(f"--remote-cavs {','.join(remote_cavs)}: {', '.join(unknown)}: not a CAV of this run "
                           f"(cavs.count {sc.cavs.count}: {cav_ranges(cavs)})")
+    if remote_cavs and sc.transport.mode != "client":  # peers do not relay: an agent elsewhere could never join
+        raise ConfigError(f"--remote-cavs {','.join(remote_cavs)}: remote agents join through a zenoh router, and "
+                          f"this run is in transport.mode {sc.transport.mode}: start `v2vsim router` and add --set "
+                          "transport.mode=client --set 'transport.connect=[tcp/ROUTER_HOST:7447]' (docs/cluster.md)")
     check_scenario(sc)
     check_output_dir(out, "--out")
     try:

@@ -6,9 +6,12 @@ the report says which method drove, and the run is the same run again for the sa
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 from pathlib import Path
+
+from .test_run import Run, _still_running
 
 REPO = Path(__file__).resolve().parents[2]
 OCCLUDED = str(REPO / "scenarios" / "t_junction_occluded.yaml")
@@ -40,3 +43,49 @@ def test_a_closed_loop_run_drives_reports_and_repeats_itself(tmp_path: Path) -> 
     # the driver applied plans (no refused commands) and the ego sent one per frame
     timing = json.loads((tmp_path / "a" / "timing" / "driver.json").read_text())
     assert not timing.get("control_rejections"), timing
+
+
+def _stopped_run(tmp_path: Path, stop: str) -> tuple[dict, str, str]:
+    """A closed-loop run (CoBEVT driving, 100 frames) stopped at frame 30 by `stop`: "ctrl-c" (SIGINT to the runner,
+    as a terminal's Ctrl-C) or "kill-driver" (SIGKILL of the simulator driver). Its metrics.json, report.md and
+    stderr."""
+    out = tmp_path / "run"
+    run = Run("--frames", "100", "--out", str(out), "--set", "seed=2", "--set", "control.method=cobevt",
+              "--set", "perception.methods=[none,cobevt]", "--set", "output.rerun=false", scenario=OCCLUDED)
+    run.wait_frames(30)
+    children = run.children()
+    if stop == "ctrl-c":
+        run.proc.send_signal(signal.SIGINT)
+        assert run.finish(timeout=60) == 130, "".join(run.log)
+    else:
+        drivers = [p for p in children if "agents.driver" in " ".join(p.cmdline())]
+        assert len(drivers) == 1
+        drivers[0].send_signal(signal.SIGKILL)
+        assert run.finish(timeout=60) == 1, "".join(run.log)
+    assert not _still_running(children, timeout=10)
+    assert (out / "report.md").is_file(), f"no report.md in {sorted(p.name for p in out.iterdir())}\n{''.join(run.log)}"
+    return json.loads((out / "metrics.json").read_text()), (out / "report.md").read_text(), "".join(run.log)
+
+
+def test_ctrl_c_in_a_closed_loop_run_writes_its_frames_with_the_driving_block(tmp_path: Path) -> None:
+    """issue 52 item 0: the ego waited 10 s for the driver's done, which an interrupted driver never sent, and the
+    runner killed it after 5 s: nothing written. Now the driver's bye carries its SSM conflicts, and the ego waits
+    briefly."""
+    m, report, log = _stopped_run(tmp_path, "ctrl-c")
+    assert m["status"].startswith("interrupted after"), m["status"]
+    assert 30 <= m["frames"] < 100 and m["methods"]["cobevt"]["iou_vehicle"] is not None
+    v = m["driving"]["vehicles"]["cav0"]
+    assert v["frames"] == m["frames"] and v["progress_m"] > 0
+    assert v["ssm"]["conflicts"] is not None  # SUMO closed on the driver's Ctrl-C and its count came in the bye
+    assert "## Driving (closed loop)" in report and "partial results are written" in log
+
+
+def test_a_killed_driver_in_a_closed_loop_run_leaves_its_frames_with_the_driving_block(tmp_path: Path) -> None:
+    """issue 52 item 0: a SIGKILLed driver says nothing more; the ego writes what it has without waiting for it."""
+    m, report, log = _stopped_run(tmp_path, "kill-driver")
+    assert m["status"].startswith("driver died after frame"), m["status"]
+    assert 30 <= m["frames"] < 100 and "no results" not in m["status"]
+    v = m["driving"]["vehicles"]["cav0"]
+    assert v["frames"] == m["frames"] and v["ssm"]["conflicts"] is None  # SUMO never closed its log: unknown
+    assert "## Driving (closed loop)" in report
+    assert "the simulator driver died (signal 9, SIGKILL)" in log

@@ -151,6 +151,10 @@ def test_a_forged_ack_from_the_future_neither_rushes_nor_ends_the_run(tmp_path: 
     driver = json.loads((out / "timing" / "driver.json").read_text())
     assert driver["control_rejections"] == {"ack": {"out_of_window": 1}}, driver["control_rejections"]
     assert "dropped a 'ack' control message" in "".join(run.log)
+    # issue 52: what the driver refused is in the run's own metrics.json and report, as the ego's refusals are
+    assert m["comm"]["by_kind"]["control"]["rejected_reasons"] == {"out_of_window": 1}, m["comm"]["by_kind"]
+    assert m["comm"]["rejected_reasons"].get("out_of_window", 0) >= 1, m["comm"]
+    assert "out_of_window" in (out / "report.md").read_text()
 
 
 def _world(frame: int, fill: bytes, valid: bool = False) -> bytes:

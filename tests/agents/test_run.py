@@ -33,8 +33,8 @@ CONTRACT_METHOD_KEYS = {"iou_vehicle", "iou_vehicle_frame_mean", "iou_road", "io
 class Run:
     """`v2vsim run` as a child process whose stderr is read line by line."""
 
-    def __init__(self, *args: str) -> None:
-        self.proc = subprocess.Popen([sys.executable, "-m", "v2vsim.cli", "run", SCENARIO, *args],
+    def __init__(self, *args: str, scenario: str = SCENARIO) -> None:
+        self.proc = subprocess.Popen([sys.executable, "-m", "v2vsim.cli", "run", scenario, *args],
                                      stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, cwd=REPO)
         self.lines: queue.Queue[str] = queue.Queue()
         self.log: list[str] = []

@@ -80,3 +80,14 @@ def test_remote_cavs_the_run_does_not_have_is_one_line(tmp_path: Path) -> None:
     # it exited 0 after printing an agent command that cannot join, and ran every CAV here
     _one_line_exit_2(r, "v2vsim: error: --remote-cavs cav9: cav9: not a CAV of this run (cavs.count 2: cav0, cav1)")
     assert not (tmp_path / "run" / "metrics.json").exists() and "v2vsim agent" not in r.stderr
+
+
+def test_remote_cavs_without_a_router_is_one_line(tmp_path: Path) -> None:
+    """issue 52: in the default peer mode it printed an agent command that could never join and failed 300 s later
+    with "agents never joined"."""
+    r = subprocess.run([sys.executable, "-m", "v2vsim.cli", "run", SCENARIO, "--frames", "1", "--out",
+                        str(tmp_path / "run"), "--remote-cavs", "cav1", "--set", "cavs.count=2", "--methods",
+                        "none", "--set", "output.rerun=false"], capture_output=True, text=True, cwd=REPO, timeout=120)
+    _one_line_exit_2(r, "v2vsim: error: --remote-cavs cav1: remote agents join through a zenoh router",
+                     "transport.mode=client", "docs/cluster.md")
+    assert not (tmp_path / "run").exists() and "v2vsim agent" not in r.stderr

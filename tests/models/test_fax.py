@@ -153,5 +153,5 @@ def test_fax_cross_attention_local_branch_is_windowed() -> None:
     changed = (y2 - y).abs().amax(-1)[0] > 1e-6  # [8, 8]
     assert changed[:4, :4].all() and not changed[4:].any() and not changed[:, 4:].any()
     assert ca(x, pos, key, val).shape == x.shape
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"BEV groups 4 != image groups 16: check window sizes"):
         ca(x, pos, torch.randn(b, m, 8, 8, 8), torch.randn(b, m, 8, 8, 8))  # 16 image windows vs 4 BEV

@@ -102,7 +102,7 @@ def test_gradients_flow_and_masked_slots_get_none() -> None:
 
 def test_too_many_agents_rejected() -> None:
     m = make(max_agents=2)
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"3 agent slots > max_agents 2"):
         m(torch.randn(1, 3, 16, 8, 8), torch.ones(1, 3, dtype=torch.bool))
 
 

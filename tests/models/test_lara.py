@@ -52,7 +52,7 @@ def test_tiny_preset_output_matches_sinbevt_tiny() -> None:
     with torch.no_grad():
         y = m(images, intr, extr)
     assert y.shape == (2, 64, 32, 32) and torch.isfinite(y).all()
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"unknown LaRa preset 'huge'"):
         build_lara("huge")
 
 

@@ -98,9 +98,10 @@ def test_samples_independent_and_geometry_used() -> None:
 
 
 def test_build_errors() -> None:
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"unknown SinBEVT preset 'huge'"):
         build_sinbevt("huge")
-    with pytest.raises(ValueError):  # 4x4 BEV windows vs 8x8 feature windows
+    # stage 0: BEV 32 / window 16 = 2x2 BEV windows vs features 8 / window 2 = 4x4 feature windows
+    with pytest.raises(ValueError, match=r"stage 0: 4 BEV windows != 16 feature windows"):
         build_sinbevt("tiny", **{**SMALL, "bev_windows": (16, 8, 16)})
 
 

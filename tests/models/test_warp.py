@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -78,7 +79,7 @@ def test_batched_shapes_and_identity_for_the_ego() -> None:
     w, mask = warp_to_ego(f, poses, 50.0)
     assert w.shape == f.shape and mask.shape == (2, 3, 16, 16)
     torch.testing.assert_close(w[:, 0], f[:, 0], atol=1e-5, rtol=0)
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=re.escape("rel_poses (2, 2, 3) does not match features (2, 3, 4, 16, 16)")):
         warp_to_ego(f, torch.zeros(2, 2, 3), 50.0)
 
 

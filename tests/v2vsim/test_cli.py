@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -68,12 +71,50 @@ def test_run_refuses_an_out_under_proc(capsys: pytest.CaptureFixture[str]) -> No
     _one_line_exit_2(["run", SCENARIO, "--out", "/proc/self"], capsys, "--out /proc/self", "cannot write there")
 
 
-@pytest.mark.skipif(os.geteuid() == 0, reason="root writes anywhere")
 def test_run_refuses_an_unwritable_out(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    locked = tmp_path / "locked"
-    locked.mkdir()
-    locked.chmod(0o555)
-    _one_line_exit_2(["run", SCENARIO, "--out", str(locked)], capsys, "cannot write there")
+    """An existing directory nobody may write into, for root too (issue 52: this test used to skip as root, i.e. in
+    every CI run): one of sysfs (the kernel refuses new files there to root), and one with mode 0555, checked by a
+    process that is not root (as root: a forked child that dropped to nobody)."""
+    _one_line_exit_2(["run", SCENARIO, "--out", "/sys/kernel"], capsys, "--out /sys/kernel", "cannot write there")
+    parent = Path(tempfile.mkdtemp(prefix="v2vsim-locked-"))  # /tmp: nobody may reach it (tmp_path is root's 0700)
+    try:
+        parent.chmod(0o755)
+        locked = parent / "locked"
+        locked.mkdir()
+        locked.chmod(0o555)
+        if os.geteuid() != 0:
+            _one_line_exit_2(["run", SCENARIO, "--out", str(locked)], capsys, "cannot write there")
+        else:
+            assert _as_nobody(lambda: _refused(locked)) == 0
+    finally:
+        locked.chmod(0o755)
+        shutil.rmtree(parent)
+
+
+def _refused(out: Path) -> int:
+    """0 when check_output_dir (what `run --out` calls first) refuses `out` as unwritable, 1 otherwise."""
+    from v2vsim.config import ConfigError, check_output_dir
+
+    try:
+        check_output_dir(out, "--out")
+    except ConfigError as e:
+        return 0 if f"--out {out}: cannot write there: permission denied" in str(e) else 1
+    return 1
+
+
+def _as_nobody(fn: Callable[[], int]) -> int:
+    """fn's result, run in a forked child that dropped root for nobody (65534): root passes every permission check."""
+    pid = os.fork()
+    if pid == 0:  # the child: no return, no exception out of here
+        code = 3
+        try:
+            os.setgroups([])
+            os.setgid(65534)
+            os.setuid(65534)
+            code = fn()
+        finally:
+            os._exit(code)
+    return os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1])
 
 
 def test_run_refuses_an_output_dir_from_the_scenario(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -104,14 +145,43 @@ def test_view_without_a_recording_is_a_clear_exit_2(tmp_path: Path, capsys: pyte
     assert "--at" in capsys.readouterr().err
 
 
-def test_view_without_a_display_prints_the_command(tmp_path: Path, capsys: pytest.CaptureFixture[str],
-                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+def test_view_without_a_display_says_how_to_look_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                             monkeypatch: pytest.MonkeyPatch) -> None:
     (tmp_path / "recording.rrd").write_bytes(b"")
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
-    assert main(["view", str(tmp_path)]) == 0
-    out = capsys.readouterr().out
-    assert f"rerun {tmp_path / 'recording.rrd'}" in out and "--screenshots" in out
+    assert main(["view", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("v2vsim view: error: no display here") and "\n" not in err
+    assert f"rerun {tmp_path / 'recording.rrd'}" in err and "--screenshots" in err
+
+
+def test_view_screenshots_without_vulkan_is_one_line_naming_what_to_install(tmp_path: Path) -> None:
+    """issue 52 item 1: the headless viewer panicked with a Rust backtrace where no Vulkan driver is installed. The
+    missing driver is simulated by naming one that does not exist (VK_DRIVER_FILES: the loader looks nowhere else);
+    a machine without the loader itself gets the same line."""
+    (tmp_path / "recording.rrd").write_bytes(b"")
+    env = dict(os.environ, VK_DRIVER_FILES=str(tmp_path / "no_such_icd.json"))
+    r = subprocess.run([sys.executable, "-m", "v2vsim.cli", "view", str(tmp_path), "--screenshots",
+                        str(tmp_path / "shots")], capture_output=True, text=True, timeout=120, env=env)
+    err = r.stderr.strip()
+    assert r.returncode == 2 and "\n" not in err, r.stderr
+    assert err.startswith("v2vsim view: error: the Rerun viewer renders with Vulkan") and "panicked" not in err
+    assert "apt-get install -y mesa-vulkan-drivers" in err
+    assert "no Vulkan loader" in err or "no_such_icd.json" in err
+
+
+@pytest.mark.parametrize("where", ["under_a_file", "/proc/v2vsim-shots", "/sys/v2vsim-shots"])
+def test_view_screenshots_into_an_unwritable_place_is_one_line(tmp_path: Path, where: str,
+                                                                capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "recording.rrd").write_bytes(b"")
+    (tmp_path / "a_file").write_text("x")
+    out = str(tmp_path / "a_file" / "shots") if where == "under_a_file" else where
+    assert main(["view", str(tmp_path), "--screenshots", out]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"v2vsim view: error: --screenshots {out}: cannot write there") and "\n" not in err
+    assert main(["view", str(tmp_path), "--screenshots", str(tmp_path / "a_file")]) == 2
+    assert "is a file, not a directory" in capsys.readouterr().err
 
 
 def test_sigint_stops_a_verb_started_with_sigint_ignored() -> None:

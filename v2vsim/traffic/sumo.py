@@ -33,6 +33,8 @@ from __future__ import annotations
 import contextlib
 import io
 import math
+import tempfile
+from pathlib import Path
 from types import ModuleType
 
 import numpy as np
@@ -120,8 +122,10 @@ class SumoBackend(BackendBase):
         self.placement: Placement | None = None
         self.hidden_foe: FoePlan | None = None  # traffic.hidden_foe: where foe0 went (sumo_hidden_foe)
         self._chosen: tuple[CavSpec, ...] | None = None  # the look-ahead's choice; a later reset() reuses it
-        # closed loop (control section): the egos' vehicles follow commands; SSM log to ssm_file
+        # closed loop (control section): the egos' vehicles follow commands; SSM log to ssm_file, or (none given)
+        # to a temporary folder removed at close: SUMO's default, ssm_<vehicle>.xml, lands in the working directory
         self._ssm_file = ssm_file
+        self._ssm_scratch: tempfile.TemporaryDirectory[str] | None = None
         self._driven = (None if scenario.control is None else
                         DrivenVehicles(self._net, _egos(scenario, self._cav_ids), scenario.control))
 
@@ -158,7 +162,7 @@ class SumoBackend(BackendBase):
                   "--xml-validation", "never", "--time-to-teleport", "-1", "--eager-insert", "true",
                   "--collision.action", "warn", "--lanechange.duration", "2",
                   "--max-depart-delay", repr(_MAX_DEPART_DELAY_S),
-                  *(control_args(sc.control, self._driven.ids, self._ssm_file)
+                  *(control_args(sc.control, self._driven.ids, self._ssm_path())
                     if final and sc.control is not None and self._driven is not None else [])])
         self._running = True
         self._frame = 0
@@ -268,6 +272,17 @@ class SumoBackend(BackendBase):
         ls = _libsumo()
         if ls.simulation.isLoaded():
             ls.close()
+        if self._ssm_scratch is not None:  # SUMO has written the log it was given as it closed: nobody reads it
+            self._ssm_scratch.cleanup()
+            self._ssm_scratch = None
+
+    def _ssm_path(self) -> str:
+        """Where SUMO writes the closed loop's SSM log: ssm_file, or a file in a scratch folder of this run."""
+        if self._ssm_file is not None:
+            return self._ssm_file
+        if self._ssm_scratch is None:
+            self._ssm_scratch = tempfile.TemporaryDirectory(prefix="v2vsim-ssm-")
+        return str(Path(self._ssm_scratch.name) / "ssm.xml")
 
     # -- internals -----------------------------------------------------------------------------
 

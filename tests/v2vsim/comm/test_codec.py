@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import struct
 import tracemalloc
 import zlib
@@ -105,11 +106,11 @@ def test_size_is_header_plus_float16_payload() -> None:
 def test_encode_refuses_non_finite_and_float16_overflow() -> None:
     bad = features()
     bad.payload[0, 0, 0] = np.nan
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"array payload has NaN/Inf values"):
         encode(bad)
     big = features()
     big.payload[0, 0, 0] = 1e6  # inf in float16
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"array payload has NaN/Inf values \(after the cast to float16\)"):
         encode(big)
 
 
@@ -254,7 +255,7 @@ def test_outputs_with_no_boxes_and_odd_extras() -> None:
     out = decode(encode(msg), expected={"outputs": (2, 4, 4), "outputs.boxes": (None, 8)})
     assert out.extras["boxes"].shape == (0, 8)
     np.testing.assert_array_equal(out.extras["big_endian"], [0, 1, 2])
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"extra arrays need a non-empty name"):
         encode(Message(**{**msg.__dict__, "extras": {"": np.zeros(2)}}))
 
 
@@ -300,7 +301,7 @@ def test_spec_bounds_and_exact_sizes() -> None:
     assert reason(encode(features(shape=(16, 8, 9), channel_compression=16)), spec=SPEC) == "shape_mismatch"
     assert reason(encode(features(channel_compression=8)), spec=SPEC) == "bad_header"  # not the ego's decoder
     assert reason(encode(points()), spec={"features": SPEC["features"]}) == "unexpected_kind"
-    with pytest.raises(TypeError):
+    with pytest.raises(TypeError, match=re.escape("decode: give `spec` or `expected`, not both")):
         decode(encode(points()), spec=SPEC, expected={"points": (None, 4)})
 
 
@@ -441,11 +442,12 @@ def test_integer_extras_only_as_cells() -> None:
 
 
 def test_kindspec_cells_needs_a_required_cells_extra() -> None:
+    needs = re.escape("KindSpec(cells=4) needs cells >= 1 and a required 'cells' extra")
     for bad in (dict(extras={}), dict(extras={"cells": (AtMost(4),)}, optional=frozenset({"cells"})),
                 dict(extras={"idx": (AtMost(4),)})):
-        with pytest.raises(ValueError):
+        with pytest.raises(ValueError, match=needs):
             KindSpec((AtMost(4), 2), cells=4, **bad)
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=re.escape("KindSpec(cells=0) needs cells >= 1")):
         KindSpec((AtMost(4), 2), extras={"cells": (AtMost(4),)}, cells=0)
 
 

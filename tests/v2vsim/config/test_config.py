@@ -28,7 +28,7 @@ def test_defaults_and_immutability(tmp_path: Path) -> None:
     assert sc.sensors.lidar.vertical_fov_deg == (-25.0, 5.0)
     assert sc.perception.methods[-1] == "cobevt"
     assert sc.cavs.arrival_s == (0.0, 4.0) and sc.cavs.meet.neighbours == 2 and sc.cavs.meet.share == 0.9
-    with pytest.raises(AttributeError):
+    with pytest.raises(AttributeError, match=r"cannot assign to field 'seed'"):
         sc.seed = 3  # type: ignore[misc]
 
 

@@ -81,3 +81,19 @@ def test_only_the_run_s_driver_may_start_a_closed_loop_backend(tmp_path: Path) -
     done = subprocess.run([sys.executable, "-m", "v2vsim.cli", "frame", str(T_JUNCTION), "--at", "0", "--out",
                            str(tmp_path), "--set", "control.method=none"], capture_output=True, text=True, timeout=120)
     assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
+
+
+def test_a_closed_loop_without_an_ssm_file_writes_nothing_where_it_runs(tmp_path: Path,
+                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """issue 52: SUMO's default SSM output is ssm_<vehicle>.xml in the working directory (ssm_cav0.xml was once
+    committed at the repository's root); with no ssm_file the backend gives it a scratch folder it removes."""
+    here = tmp_path / "cwd"
+    here.mkdir()
+    monkeypatch.chdir(here)
+    sc = load_scenario(T_JUNCTION, ["control.method=none", "duration_s=2"])
+    with make_backend(sc, closed_loop=True) as b:
+        b.reset()
+        for _ in range(5):
+            b.command({"cav0": 1.0})
+            b.step()
+    assert sorted(p.name for p in here.iterdir()) == []

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -215,7 +216,7 @@ def test_close_and_restart_in_one_process() -> None:
         b.reset()
     a.close()
     a.close()  # idempotent
-    with pytest.raises(RuntimeError):
+    with pytest.raises(RuntimeError, match=re.escape("step() before reset() (or after close())")):
         a.step()
     with b:
         again = b.reset()
