@@ -44,7 +44,7 @@ def has_display() -> bool:
 # Where the Vulkan loader looks for installable client drivers (ICDs) on Linux, besides $XDG_DATA_DIRS/vulkan/icd.d.
 VULKAN_ICD_DIRS = ("/etc/vulkan/icd.d", "/usr/local/etc/vulkan/icd.d", "/usr/local/share/vulkan/icd.d",
                    "/usr/share/vulkan/icd.d")
-INSTALL_VULKAN = "apt-get install -y mesa-vulkan-drivers (Mesa's lavapipe: software rendering, no GPU needed)"
+INSTALL_VULKAN = "`apt-get install -y mesa-vulkan-drivers` (Mesa's lavapipe: software rendering, no GPU needed)"
 
 
 def vulkan_missing(environ: Mapping[str, str] = os.environ, icd_dirs: Sequence[str] = VULKAN_ICD_DIRS,
@@ -55,16 +55,16 @@ def vulkan_missing(environ: Mapping[str, str] = os.environ, icd_dirs: Sequence[s
     if not sys.platform.startswith("linux"):
         return None
     if not (loader or _vulkan_loader_loads)():
-        return "no Vulkan loader (libvulkan.so.1)"
+        return "there is no Vulkan loader (libvulkan.so.1)"
     listed = [f for v in ("VK_DRIVER_FILES", "VK_ICD_FILENAMES") for f in environ.get(v, "").split(os.pathsep) if f]
     if listed:  # the user named the drivers: the loader looks nowhere else
         return None if any(Path(f).is_file() for f in listed) else (
-            f"none of the Vulkan drivers VK_DRIVER_FILES / VK_ICD_FILENAMES name exists ({', '.join(listed)})")
+            f"the Vulkan drivers that VK_DRIVER_FILES / VK_ICD_FILENAMES name do not exist ({', '.join(listed)})")
     data_dirs = environ.get("XDG_DATA_DIRS", "").split(os.pathsep)
     dirs = [*icd_dirs, *(str(Path(d) / "vulkan" / "icd.d") for d in data_dirs if d)]
     if any(Path(d).is_dir() and any(Path(d).glob("*.json")) for d in dirs):
         return None
-    return f"no Vulkan driver (no ICD file in {', '.join(icd_dirs)})"
+    return f"there is no Vulkan driver (no ICD file in {', '.join(icd_dirs)})"
 
 
 def _vulkan_loader_loads() -> bool:
@@ -79,9 +79,8 @@ def check_viewer_can_render(environ: Mapping[str, str] = os.environ) -> None:
     """ViewError, in one line with what to install, where a viewer started here would panic for want of Vulkan."""
     missing = vulkan_missing(environ)
     if missing is not None:
-        raise ViewError(f"the Rerun viewer renders with Vulkan and this machine has {missing}: install a driver, "
-                        f"e.g. `{INSTALL_VULKAN}`, or open the recording on a machine with a screen "
-                        "(docs/reviewing.md)")
+        raise ViewError(f"the Rerun viewer renders with Vulkan, and here {missing}: install a driver, e.g. "
+                        f"{INSTALL_VULKAN}, or open the recording on a machine with a screen (docs/reviewing.md)")
 
 
 def viewer_command(rrd: Path) -> list[str]:

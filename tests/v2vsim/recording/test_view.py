@@ -16,14 +16,14 @@ def _icd(folder: Path) -> Path:
 
 def test_a_machine_without_the_vulkan_loader_is_told_so(tmp_path: Path) -> None:
     _icd(tmp_path / "icd.d")
-    assert vulkan_missing({}, [str(tmp_path / "icd.d")], loader=lambda: False) == "no Vulkan loader (libvulkan.so.1)"
+    assert vulkan_missing({}, [str(tmp_path / "icd.d")], loader=lambda: False) == "there is no Vulkan loader (libvulkan.so.1)"
 
 
 def test_a_machine_without_a_driver_is_told_where_none_was_found(tmp_path: Path) -> None:
     empty = tmp_path / "icd.d"
     empty.mkdir()
     why = vulkan_missing({}, [str(empty), str(tmp_path / "absent")], loader=lambda: True)
-    assert why == f"no Vulkan driver (no ICD file in {empty}, {tmp_path / 'absent'})"
+    assert why == f"there is no Vulkan driver (no ICD file in {empty}, {tmp_path / 'absent'})"
 
 
 def test_a_driver_in_a_system_folder_or_the_xdg_data_dirs_is_found(tmp_path: Path) -> None:
