@@ -143,7 +143,10 @@ def test_run_writes_report_metrics_recording_and_plots(tmp_path: Path) -> None:
     assert list(m["methods"]) == ["none", "late", "early", "attfuse", "fcooper", "v2vnet", "disconet", "cobevt"]
     for name, r in m["methods"].items():
         assert CONTRACT_METHOD_KEYS <= set(r), name
-        assert r["iou_vehicle"] is None or 0.0 <= r["iou_vehicle"] <= 1.0
+        # every method of the shipped scenario scores: visible vehicles are in every frame (the ego's own at least),
+        # so None here is a method that scored nothing (issue 52: `None or ...` let such a run pass)
+        assert r["iou_vehicle"] is not None and 0.0 <= r["iou_vehicle"] <= 1.0, (name, r)
+        assert r["ap50"] is not None and 0.0 <= r["ap50"] <= 1.0, (name, r)  # LiDAR: every method decodes boxes
         assert r["fusion_ms"] > 0
     assert m["methods"]["none"]["bytes_per_frame"] == 0
     # 300 m range: both other CAVs are within it in every frame (shares over 0..cavs-1 sum to 1)

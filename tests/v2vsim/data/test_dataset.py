@@ -68,8 +68,9 @@ def test_sample_holds_what_forward_takes(tiny_dataset) -> None:
 def test_delayed_neighbours_come_from_an_earlier_frame(tiny_dataset) -> None:
     ds = CooperativeDataset(tiny_dataset, "train", max_agents=4, delays=(1,))
     with_nb = [i for i in range(len(ds)) if ds.items[i].frame > 0 and len(ds[i]["agents"]) > 1]
-    if not with_nb:
-        pytest.skip("no neighbour in range in these frames")
+    # the intersection places its CAVs within comm range of each other (cavs.meet): neighbours by construction, so
+    # none here is a broken dataset or loader, not bad luck (issue 52: this test used to skip then)
+    assert with_nb, [(ds.items[i].frame, ds[i]["agents"]) for i in range(len(ds))]
     s = ds[with_nb[0]]
     assert s["agent_frames"][0] == s["key"].frame and s["agent_frames"][1] == s["key"].frame - 1
     # a delay longer than the run so far reaches back to frame 0 at most

@@ -16,7 +16,8 @@ def _icd(folder: Path) -> Path:
 
 def test_a_machine_without_the_vulkan_loader_is_told_so(tmp_path: Path) -> None:
     _icd(tmp_path / "icd.d")
-    assert vulkan_missing({}, [str(tmp_path / "icd.d")], loader=lambda: False) == "there is no Vulkan loader (libvulkan.so.1)"
+    why = vulkan_missing({}, [str(tmp_path / "icd.d")], loader=lambda: False)
+    assert why == "there is no Vulkan loader (libvulkan.so.1)"
 
 
 def test_a_machine_without_a_driver_is_told_where_none_was_found(tmp_path: Path) -> None:
