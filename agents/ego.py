@@ -274,6 +274,7 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
     frames_done = 0
     status = "complete"
     realtime = sc.transport.clock == "realtime"
+    lost_after = sc.transport.lost_after_s
     k = -1
     working = 0  # the frame being waited for or worked on (for a crash's status)
     code = 0
@@ -319,11 +320,13 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
             present = [a.id for a in world.cavs if a.id in args.cavs]
             if not realtime:
                 with timer.stage("wait"):
-                    wait_messages(box, bus, k, present, [kd for kd in [*kinds, *side] if kd != "points"], lost)
+                    wait_messages(box, bus, k, present, [kd for kd in [*kinds, *side] if kd != "points"], lost,
+                                  lost_after)
                     if "points" in kinds:
-                        wait_messages(box, bus, k, [c for c in present if c in lidar_cavs], ["points"], lost)
+                        wait_messages(box, bus, k, [c for c in present if c in lidar_cavs], ["points"], lost,
+                                      lost_after)
                     if own_decoder is not None and me in present:
-                        wait_messages(box, bus, k, [me], ["own"], lost)
+                        wait_messages(box, bus, k, [me], ["own"], lost, lost_after)
             else:  # lockstep marks a CAV lost at the first frame whose messages it never sent (above);
                 # the driver and CAVs may be frames ahead, so a CAV gone by now may have sent frame k
                 for cav in present:

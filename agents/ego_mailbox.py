@@ -23,7 +23,7 @@ from v2vsim.comm.control import DRIVER
 from v2vsim.config import Scenario
 from v2vsim.recording.scan import scan_frame
 
-HANG_TIMEOUT_S = 60.0  # a live CAV that sends nothing for this long is treated as lost
+HANG_TIMEOUT_S = 60.0  # a driver alive but silent this long is a hang; a live CAV's default (transport.lost_after_s)
 # Side channels between our own processes, not V2V messages: not channel-modelled, not counted.
 SIDE_KINDS = ("vis", "scan", "own")  # "own": the ego's uncompressed map from its own CAV process
 
@@ -227,9 +227,10 @@ def cav_died(bus: Bus, cav: str) -> bool:
 
 
 def wait_messages(box: Mailbox, bus: Bus, k: int, present: list[str], kinds: list[str],
-                   lost: dict[str, int]) -> None:
-    """Lockstep: wait until every live CAV's frame-k messages of `kinds` are in (or it is lost)."""
-    deadline = time.monotonic() + HANG_TIMEOUT_S
+                  lost: dict[str, int], lost_after_s: float = HANG_TIMEOUT_S) -> None:
+    """Lockstep: wait until every live CAV's frame-k messages of `kinds` are in (or it is lost: gone, or silent for
+    `lost_after_s`, transport.lost_after_s)."""
+    deadline = time.monotonic() + lost_after_s
     with box.cond:
         while True:
             missing = [c for c in present if c not in lost and not all(
@@ -243,7 +244,7 @@ def wait_messages(box: Mailbox, bus: Bus, k: int, present: list[str], kinds: lis
             if time.monotonic() > deadline:
                 for c in missing:
                     lost[c] = k
-                    print(f"v2vsim-ego: CAV {c} sent nothing for {HANG_TIMEOUT_S:g} s at frame {k}; "
+                    print(f"v2vsim-ego: CAV {c} sent nothing for {lost_after_s:g} s at frame {k}; "
                           "treating it as lost", file=sys.stderr)
                 return
             box.cond.wait(0.2)

@@ -46,13 +46,13 @@ def test_a_closed_loop_run_drives_reports_and_repeats_itself(tmp_path: Path) -> 
 
 
 def _stopped_run(tmp_path: Path, stop: str) -> tuple[dict, str, str]:
-    """A closed-loop run (CoBEVT driving, 100 frames) stopped at frame 30 by `stop`: "ctrl-c" (SIGINT to the runner,
+    """A closed-loop run (CoBEVT driving, 100 frames) stopped at frame 12 by `stop`: "ctrl-c" (SIGINT to the runner,
     as a terminal's Ctrl-C) or "kill-driver" (SIGKILL of the simulator driver). Its metrics.json, report.md and
     stderr."""
     out = tmp_path / "run"
     run = Run("--frames", "100", "--out", str(out), "--set", "seed=2", "--set", "control.method=cobevt",
               "--set", "perception.methods=[none,cobevt]", "--set", "output.rerun=false", scenario=OCCLUDED)
-    run.wait_frames(30)
+    run.wait_frames(12)
     children = run.children()
     if stop == "ctrl-c":
         run.proc.send_signal(signal.SIGINT)
@@ -73,7 +73,7 @@ def test_ctrl_c_in_a_closed_loop_run_writes_its_frames_with_the_driving_block(tm
     briefly."""
     m, report, log = _stopped_run(tmp_path, "ctrl-c")
     assert m["status"].startswith("interrupted after"), m["status"]
-    assert 30 <= m["frames"] < 100 and m["methods"]["cobevt"]["iou_vehicle"] is not None
+    assert 12 <= m["frames"] < 100 and m["methods"]["cobevt"]["iou_vehicle"] is not None
     v = m["driving"]["vehicles"]["cav0"]
     assert v["frames"] == m["frames"] and v["progress_m"] > 0
     assert v["ssm"]["conflicts"] is not None  # SUMO closed on the driver's Ctrl-C and its count came in the bye
@@ -84,7 +84,7 @@ def test_a_killed_driver_in_a_closed_loop_run_leaves_its_frames_with_the_driving
     """issue 52 item 0: a SIGKILLed driver says nothing more; the ego writes what it has without waiting for it."""
     m, report, log = _stopped_run(tmp_path, "kill-driver")
     assert m["status"].startswith("driver died after frame"), m["status"]
-    assert 30 <= m["frames"] < 100 and "no results" not in m["status"]
+    assert 12 <= m["frames"] < 100 and "no results" not in m["status"]
     v = m["driving"]["vehicles"]["cav0"]
     assert v["frames"] == m["frames"] and v["ssm"]["conflicts"] is None  # SUMO never closed its log: unknown
     assert "## Driving (closed loop)" in report

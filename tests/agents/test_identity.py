@@ -219,7 +219,8 @@ def test_without_auth_a_fake_ego_token_no_longer_hangs_the_run(tmp_path: Path, r
         fake = session.liveliness().declare_token(f"v2vsim/{run_id}/alive/ego.cav0")
         run = Run("--frames", str(frames), "--out", str(out), "--run-id", run_id, "--methods", "none",
                   "--set", "cavs.count=2", "--set", "transport.mode=client", "--set",
-                  f"transport.connect=[{router}]", "--set", "output.rerun=false", "--set", "comm.auth.identity=off")
+                  f"transport.connect=[{router}]", "--set", "output.rerun=false", "--set", "comm.auth.identity=off",
+                  "--set", "transport.lost_after_s=10")  # (the default 60 s wait made this test the suite's longest)
         assert run.finish(timeout=240) == 0, "".join(run.log)
         fake.undeclare()
     m = _metrics(out)

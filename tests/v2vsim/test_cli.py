@@ -36,6 +36,8 @@ def _one_line_exit_2(argv: list[str], capsys: pytest.CaptureFixture[str], *expec
     (["--set", "seed=2147483648"], ["seed", "0..2147483647"]),
     (["--set", "seed=-5"], ["seed", "0..2147483647"]),
     (["--set", "transport.listen=[tcp/127.0.0.1:70000]"], ["transport.listen[0]", "1..65535"]),
+    (["--set", "transport.lost_after_s=0"], ["transport.lost_after_s", "seconds > 0"]),
+    (["--set", "transport.lost_after_s=.inf"], ["transport.lost_after_s"]),
     (["--set", "cavs.ego=[cav9]"], ["cavs.ego[0]", "'cav9'", "cav0, cav1, cav2, cav3"]),
     (["--set", "cavs.ego=[cav0,cav0]"], ["cavs.ego[1]", "listed twice"]),
     (["--run-id", "a/b"], ["--run-id"]),

@@ -256,6 +256,9 @@ class TransportConfig:
     # lockstep: frames the driver and CAVs may run ahead of the slowest ego (0 = strict lockstep);
     # results are the same for any value, only the wall time changes.
     pipeline: int = _f(2, "an integer 0..16", lambda v: 0 <= v <= 16)
+    # lockstep: how long the ego waits for a CAV that is alive (its token up) but sent nothing for a frame before it
+    # fuses without it and counts it lost (metrics.json lost_agents); a dead CAV is noticed at once
+    lost_after_s: float = _f(60.0, "seconds > 0", lambda v: 0 < v < float("inf"))
 
 
 @dataclass(frozen=True)
