@@ -90,4 +90,4 @@ def test_remote_cavs_without_a_router_is_one_line(tmp_path: Path) -> None:
                         "none", "--set", "output.rerun=false"], capture_output=True, text=True, cwd=REPO, timeout=120)
     _one_line_exit_2(r, "v2vsim: error: --remote-cavs cav1: remote agents join through a zenoh router",
                      "transport.mode=client", "docs/cluster.md")
-    assert not (tmp_path / "run").exists() and "v2vsim agent" not in r.stderr
+    assert not (tmp_path / "run" / "metrics.json").exists() and "v2vsim agent" not in r.stderr

@@ -179,6 +179,9 @@ class FakeBus:
     def control_rejections(self) -> dict[tuple[str, str], int]:
         return {}
 
+    def leave_word(self, **doc: object) -> None:
+        self.word = doc
+
     def put(self, kind: str, data: bytes) -> int:
         self.kinds.append(kind)
         if kind == "world":
@@ -203,6 +206,7 @@ def test_driver_stops_when_every_ego_is_gone(clock: str, monkeypatch: pytest.Mon
     bus = FakeBus(ego_dies_after=3)
     assert driver.drive(args, bus) == 1  # type: ignore[arg-type]
     assert bus.worlds == 4 and "done" not in bus.kinds  # frames 0..3 went out; the ego died with frame 3
+    assert bus.word == {"control_rejections": {}}  # what its bye carries (open loop: no SSM conflicts)
     assert "every ego process is gone at frame 4" in capsys.readouterr().err
     full = FakeBus(ego_dies_after=10**9)
     assert driver.drive(dataclasses_replace(args, frames=6), full) == 0  # type: ignore[arg-type]
