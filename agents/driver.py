@@ -26,6 +26,7 @@ from v2vsim.comm.control import MAX_CONTROL_BYTES
 from v2vsim.control.measures import ssm_conflicts
 from v2vsim.traffic import make_backend
 from v2vsim.world.serialize import MAX_STATIC_BYTES, MAX_WORLD_BYTES, static_to_bytes, world_to_bytes
+from v2vsim.world.state import WorldState
 
 ACK_RESEND_S = 2.0  # an ego silent this long gets the worlds it has not acked again
 MAX_COMMAND_MPS2 = 50.0  # a commanded acceleration beyond this is no plan: refused and counted
@@ -156,6 +157,7 @@ def drive(args: AgentArgs, bus: Bus) -> int:
         report_progress("driver", 0, frames)
         t_start = time.monotonic()
         ahead = sc.transport.pipeline
+        last = frames - 1  # the last frame published (earlier when every driven vehicle completed its route)
         for k in range(frames):
             if egos_gone(k):
                 return 1
@@ -174,6 +176,11 @@ def drive(args: AgentArgs, bus: Bus) -> int:
                 published[0] = k
                 bus.put("world", data)
             timer.frame_done()
+            if closed_loop and routes_completed(world, egos):  # each ego ends on this frame's world; so does the run
+                print(f"v2vsim-driver: every driven vehicle completed its route at frame {k}", file=sys.stderr,
+                      flush=True)
+                last = k
+                break
             with timer.stage("wait"):
                 if sc.transport.clock == "realtime":
                     next_tick = t_start + (k + 1) / sc.rate_hz
@@ -182,14 +189,21 @@ def drive(args: AgentArgs, bus: Bus) -> int:
                     wait_acks(k - ahead)
             report_progress("driver", k + 1, frames)
         if sc.transport.clock != "realtime":
-            wait_acks(frames - 1)  # CAVs end on `done`: not before the egos have everything they need
-        bus.put("done", json.dumps({"frames": frames, **final_word(bus, backend, closed_loop, ssm_file)}).encode())
+            wait_acks(last)  # CAVs end on `done`: not before the egos have everything they need
+        bus.put("done", json.dumps({"frames": last + 1, **final_word(bus, backend, closed_loop, ssm_file)}).encode())
     finally:
         # Stopped (Ctrl-C) or failed: the egos write what they have, and take the SSM conflicts and refusals from
         # this process's bye instead of its done (agents.ego.driver_word).
         bus.leave_word(**final_word(bus, backend, closed_loop, ssm_file))
         write_timing(args.out, "driver", timer, bus.control_rejections())
     return 0
+
+
+def routes_completed(world: WorldState, egos: list[str]) -> bool:
+    """Closed loop: every ego's vehicle completed its route, on this world or before (it has left the simulation)."""
+    states = {d.id: d for d in world.driven}
+    present = {a.id for a in world.actors}
+    return all(states[e].finished if e in states else e not in present for e in egos)
 
 
 def final_word(bus: Bus, backend: object, closed_loop: bool, ssm_file: str | None) -> dict:

@@ -43,6 +43,7 @@ from v2vsim.comm.wire_spec import EgoDecoder, ego_wire_spec
 from v2vsim.config import Scenario
 from v2vsim.control.measures import driving_block, vehicle_measures
 from v2vsim.control.pilot import Pilot
+from v2vsim.control.score import PENALTY, score_block, total_score
 from v2vsim.evaluation.fuse_and_score import box_iou, predict_all
 from v2vsim.evaluation.gt import bev_ground_truth, gt_boxes
 from v2vsim.evaluation.metrics import ApAccumulator, MethodScore, cavs_in_range
@@ -136,10 +137,11 @@ def driver_refusals(word: dict) -> dict[tuple[str, str], int]:
     return out
 
 
-def driving_summary(sc: Scenario, me: str, pilot: Pilot, word: dict) -> dict:
+def driving_summary(sc: Scenario, me: str, pilot: Pilot, word: dict, time_limit_reached: bool) -> dict:
     """metrics.json `driving` of this ego's vehicle. SUMO writes its SSM log when the simulation closes, after the
     last frame: the driver counts its conflicts and says them as it ends (`word`, from driver_word); None when it
-    never said them (it died)."""
+    never said them (it died). `time_limit_reached`: the run went through its last frame (a route not completed by
+    then is a timeout; a run stopped early is not)."""
     assert sc.control is not None
     conflicts = word.get("ssm_conflicts")
     count = conflicts.get(me, 0) if isinstance(conflicts, dict) else None
@@ -152,7 +154,11 @@ def driving_summary(sc: Scenario, me: str, pilot: Pilot, word: dict) -> dict:
                                  "range_m": c.ssm.range_m},
               "hard_brake_mps2": c.hard_brake_mps2, "near_miss_gap_m": c.near_miss_gap_m}
     per = vehicle_measures(pilot.frames, sc.dt, c.hard_brake_mps2, c.near_miss_gap_m, count)
-    return driving_block({me: per}, header)
+    if per.get("frames"):
+        per |= score_block(pilot.frames, per["collisions"], time_limit_reached)
+    block = driving_block({me: per}, {**header, "route_m": c.route_m, "penalties": dict(PENALTY)})
+    block["total"] |= total_score([v for v in block["vehicles"].values() if v.get("frames")])
+    return block
 
 
 def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder: torch.nn.Module | None = None
@@ -275,6 +281,7 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
     status = "complete"
     realtime = sc.transport.clock == "realtime"
     lost_after = sc.transport.lost_after_s
+    finished_route = False  # closed loop: its vehicle completed its route (the run ends for it before the last frame)
     k = -1
     working = 0  # the frame being waited for or worked on (for a crash's status)
     code = 0
@@ -376,6 +383,11 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
                     bus.put("ack", json.dumps(ack).encode())
             report_progress(progress_name, k + 1, args.frames, delivered=stats.delivered, dropped=stats.dropped,
                             out_of_range=stats.out_of_range)
+            if drive is not None and drive.logged.finished:  # its route is done: it arrives, its run is complete
+                print(f"v2vsim-ego {me}: route completed at frame {k} ({drive.logged.time:.1f} s)", file=sys.stderr,
+                      flush=True)
+                finished_route = True
+                break
     except Stop:
         # The runner stops everyone when the driver dies: say so rather than "interrupted".
         died = bus.driver_gone() and bus.farewell(DRIVER) is None
@@ -413,7 +425,8 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
                       else STOPPING_WAIT_S)
             word = driver_word(box, bus, done_doc, wait_s)
             if pilot is not None:
-                summary.driving = driving_summary(sc, me, pilot, word)
+                summary.driving = driving_summary(sc, me, pilot, word,
+                                                  went_to_end and (finished_route or k + 1 >= args.frames))
             control = Counter(bus.control_rejections()) + Counter(driver_refusals(word))
             by_kind = {kind: ib.stats for kind, ib in inboxes.items()}
             by_kind["control"] = control_rejections(control, stats)

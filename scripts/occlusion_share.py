@@ -101,7 +101,7 @@ def _sample(tb: SumoBackend, world, ego: str, approach: str) -> Sample:
 
 def measure(scenario_path: str, seed: int, overrides: list[str]) -> Outcome:
     """Run one seed open loop and judge its encounter (module doc)."""
-    sc = load_scenario(scenario_path, [*overrides, f"seed={seed}"])
+    sc = load_scenario(scenario_path, ["control=null", *overrides, f"seed={seed}"])  # the traffic, open loop
     with make_backend(sc) as tb:
         assert isinstance(tb, SumoBackend), "the hidden foe needs the sumo backend"
         world = tb.reset()

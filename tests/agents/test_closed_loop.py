@@ -11,6 +11,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from .test_run import Run, _still_running
 
 REPO = Path(__file__).resolve().parents[2]
@@ -89,3 +91,26 @@ def test_a_killed_driver_in_a_closed_loop_run_leaves_its_frames_with_the_driving
     assert v["frames"] == m["frames"] and v["ssm"]["conflicts"] is None  # SUMO never closed its log: unknown
     assert "## Driving (closed loop)" in report
     assert "the simulator driver died (signal 9, SIGKILL)" in log
+
+
+def test_a_route_completed_early_ends_the_run_complete_with_exit_0(tmp_path: Path) -> None:
+    """issue 53: the driven vehicle reaching the end of its route (the best outcome of a drive) ended the run with
+    "the simulator driver exited with code 1". Now it arrives, its ego writes a complete run with its score, and the
+    run stops there."""
+    out = tmp_path / "run"
+    done = subprocess.run([sys.executable, "-m", "v2vsim.cli", "run", OCCLUDED, "--out", str(out), "--frames", "100",
+                           "--set", "seed=2", "--set", "control.method=oracle", "--set", "control.route_m=15",
+                           "--set", "perception.methods=[none]", "--set", "output.rerun=false"],
+                          capture_output=True, text=True, timeout=400)
+    assert done.returncode == 0, done.stderr[-3000:]
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["status"] == "complete" and m["frames"] < 100, (m["status"], m["frames"])
+    v = m["driving"]["vehicles"]["cav0"]
+    assert v["route_completion"] == 1.0 and v["success"] is True and v["driving_score"] == 1.0, v
+    assert v["infractions"] == {"collision_vehicle": 0, "red_light": 0, "timeout": 0}
+    assert v["route_m"] == 15 and 15 <= v["progress_m"] < 17
+    assert v["finished_at_s"] == pytest.approx((m["frames"] - 1) / 10)  # its last frame
+    assert m["driving"]["total"]["successes"] == 1 and m["driving"]["total"]["driving_score"] == 1.0
+    assert "route completed at frame" in done.stderr and "every driven vehicle completed its route" in done.stderr
+    assert "error" not in done.stderr.lower(), done.stderr[-3000:]
+    assert "| cav0 | 1.00 | 1.00 | yes |" in (out / "report.md").read_text()

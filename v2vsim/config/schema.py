@@ -345,6 +345,10 @@ class ControlConfig:
     # already in the junction (so a driven vehicle that pulls out blindly is rarely hit); 1 = they keep their
     # right of way. A modelling choice: the run's report states it.
     background_ignore_junction_foes: float = _f(0.0, "0..1 (probability)", _prob)
+    # The route a driven vehicle must complete (its driving score, v2vsim/control/score.py): this many metres along
+    # its SUMO route from where it is at frame 0, or null: to the end of that route. A vehicle that completes it
+    # leaves the simulation (it arrived); the run's duration is the time limit.
+    route_m: float | None = _f(None, "> 0 (m) or null (to the end of the vehicle's SUMO route)", _pos)
 
 
 @dataclass(frozen=True)

@@ -14,6 +14,8 @@ Definitions (each figure is per driven vehicle; `total` adds counts and takes th
   for an obstacle that no vehicle is within phantom_match_m of: a false positive that cost something.
 - time_to_clear_s: when it first left the junction it had entered (null: it never did); progress_m: the
   distance it drove.
+- peak_jerk_mps3: the largest change of its acceleration between two steps, per second (comfort).
+The driving score, route completion, success and infractions beside these: v2vsim/control/score.py.
 """
 
 from __future__ import annotations
@@ -51,6 +53,10 @@ class DrivenFrame:
     reason: str | None  # free | leader | yield | stop_line
     phantom: bool  # braking for an obstacle no vehicle is near
     others: tuple[tuple[str, float, float, float], ...] = ()  # (id, x, y, yaw) of vehicles within 40 m
+    red_m: float | None = None  # a red or amber light's stop line ahead (v2vsim.control.score: red-light entries)
+    route_m: float | None = None  # its route (control.route_m) and how much of it is behind it (the driving score)
+    route_done_m: float = 0.0
+    finished: bool = False  # it completed its route at this frame
 
 
 def _onsets(flags: Sequence[bool]) -> int:
@@ -138,6 +144,7 @@ def vehicle_measures(frames: Sequence[DrivenFrame], dt: float, hard_brake: float
         "hard_braking": _onsets([bool(a <= -hard_brake) for a in accel]),
         "phantom_braking": _onsets([f.phantom for f in frames]),
         "max_decel_mps2": round(float(max(0.0, -accel.min())), 3),
+        "peak_jerk_mps3": round(float(np.abs(np.diff(accel[1:])).max() / dt), 3) if len(accel) > 2 else 0.0,
         "time_to_clear_s": cleared,
         "progress_m": round(frames[-1].odometer_m - frames[0].odometer_m, 3),
         "mean_speed_mps": round(float(speeds.mean()), 3),

@@ -106,6 +106,8 @@ class Pilot:
         logged = DrivenFrame(frame=world.frame, time=world.time, x=me.pose.x, y=me.pose.y, yaw=me.pose.yaw,
                              speed=me.speed, odometer_m=state.odometer_m, in_junction=state.in_junction,
                              collisions=state.collisions, ssm=state.ssm, min_gap_m=gap, closest=closest,
-                             commanded_speed=p.speed, reason=p.reason, phantom=phantom, others=near)
+                             commanded_speed=p.speed, reason=p.reason, phantom=phantom, others=near,
+                             red_m=state.red_m, route_m=state.route_m, route_done_m=state.route_done_m,
+                             finished=state.finished)
         self.frames.append(logged)
         return PilotStep(plan=p, tracks=self.tracks, logged=logged)

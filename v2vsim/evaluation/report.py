@@ -191,8 +191,23 @@ def driving_md(d: dict | None) -> list[str]:
                      + f" | {'yes' if m['near_miss'] else 'no'} | {f(m['min_gap_m'])} | {f(ssm['min_ttc_s'])} | "
                      f"{f(ssm['max_drac_mps2'])} | {f(ssm['min_pet_s'])} | {f(m['pet_s'])} | {m['hard_braking']} | "
                      f"{m['phantom_braking']} | {f(m['time_to_clear_s'])} | {f(m['progress_m'])} |")
+    scored = [(v, m) for v, m in d["vehicles"].items() if m.get("frames") and "driving_score" in m]
+    if scored:
+        pen = d.get("penalties", {})
+        lines += ["", "Driving score (the CARLA leaderboard's: route completion x "
+                  + " x ".join(f"{p:g} per {k.replace('_', ' ')}" for k, p in pen.items())
+                  + f"; route {f(d.get('route_m'), ' m') if d.get('route_m') else 'to the end of its SUMO route'}, "
+                  "time limit the run's duration):", "",
+                  "| vehicle | driving score | route completion | success | completed at s | infractions | "
+                  "peak jerk m/s³ |", "|---|---|---|---|---|---|---|"]
+        for v, m in scored:
+            inf = ", ".join(f"{k.replace('_', ' ')} {n}" for k, n in m["infractions"].items() if n) or "none"
+            lines.append(f"| {v} | {f(m['driving_score'])} | {f(m['route_completion'])} | "
+                         f"{'yes' if m['success'] else 'no'} | {f(m['finished_at_s'])} | {inf} | "
+                         f"{f(m.get('peak_jerk_mps3'))} |")
     lines += ["", "Definitions: docs/scenario.md \"control\" (SUMO's SSM treats conflict areas as orthogonal lanes "
-              "and ignores lateral conflicts; the trajectory PET is measured beside it)."]
+              "and ignores lateral conflicts; the trajectory PET is measured beside it); the score: "
+              "v2vsim/control/score.py."]
     return lines
 
 

@@ -24,9 +24,11 @@ METHOD_KEY = "control.method"
 BASELINE = "none"
 METHOD_COLUMN = "driving_method"  # present on every row of a closed-loop run, absent from open-loop ones
 EITHER = "collisions_or_near_misses"  # 0/1 per run: a collision or a near miss happened
-MEASURES = ("collisions", "near_misses", EITHER, "min_ttc_s", "min_gap_m", "time_to_clear_s", "hard_braking",
-            "phantom_braking")
-LABELS = {"collisions": "collisions per run", "near_misses": "near misses per run (driven vehicles with one)",
+MEASURES = ("driving_score", "success", "route_completion", "collisions", "near_misses", EITHER, "min_ttc_s",
+            "min_gap_m", "time_to_clear_s", "hard_braking", "phantom_braking")
+LABELS = {"driving_score": "driving score (0-1)", "success": "share of runs that succeeded",
+          "route_completion": "route completion (0-1)",
+          "collisions": "collisions per run", "near_misses": "near misses per run (driven vehicles with one)",
           EITHER: "share of runs with a collision or near miss", "min_ttc_s": "min TTC (s)",
           "min_gap_m": "min gap (m)", "time_to_clear_s": "time to clear the junction (s)",
           "hard_braking": "hard-braking onsets per run", "phantom_braking": "phantom-braking onsets per run"}

@@ -65,7 +65,10 @@ def driving_columns(driving: dict[str, Any] | None) -> dict[str, Any]:
         return {}
     out: dict[str, Any] = {"driving_method": driving.get("method")}
     for k, v in (driving.get("total") or {}).items():
-        out[f"driving_{k}"] = int(v) if isinstance(v, bool) else v
+        if isinstance(v, dict):  # infraction counts by kind: a column each (driving_infractions_timeout, ...)
+            out |= {f"driving_{k}_{kind}": n for kind, n in v.items()}
+        else:
+            out[f"driving_{k}"] = int(v) if isinstance(v, bool) else v
     return out
 
 

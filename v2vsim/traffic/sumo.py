@@ -250,6 +250,8 @@ class SumoBackend(BackendBase):
         if not self._running:
             raise RuntimeError("step() before reset() (or after close())")
         ls = _libsumo()
+        if self._driven is not None:
+            self._driven.retire_finished(ls, self._known)
         self._advance(ls)
         self._frame += 1
         return self._state(ls)

@@ -31,6 +31,8 @@ from v2vsim.config import ControlConfig
 from v2vsim.world.state import DrivenState
 
 PATH_AHEAD_M = 120.0  # how far along its route a driven vehicle's path reaches
+ARRIVAL_MARGIN_M = 3.0  # a route to the end of the SUMO route finishes this short of it: SUMO removes a vehicle
+# that reaches its route's end within a step (up to ~1.5 m at 14 m/s), before the finish could be seen
 PATH_STEP_M = 2.0  # spacing of the path's points
 ZONE_AHEAD_M = 150.0  # a junction farther than this along the lane is not yet "next"
 
@@ -83,6 +85,8 @@ class DrivenVehicles:
         self.ids = tuple(ids)
         self.control = control
         self._taken: set[str] = set()
+        self._route: dict[str, tuple[float, float]] = {}  # vehicle -> (odometer at take-over, its route's length)
+        self._finished: set[str] = set()  # completed their route: removed at the next step
 
     def take_over(self, ls: ModuleType, present: Sequence[str]) -> None:
         """From now on SUMO's safety checks are off for these vehicles; they hold their speed until commanded."""
@@ -91,6 +95,23 @@ class DrivenVehicles:
                 ls.vehicle.setSpeedMode(v, 0)
                 ls.vehicle.setSpeed(v, ls.vehicle.getSpeed(v))
                 self._taken.add(v)
+                self._route[v] = (float(ls.vehicle.getDistance(v)), self._route_length(ls, v))
+
+    def _route_length(self, ls: ModuleType, v: str) -> float:
+        """The route it must complete from here: control.route_m along its SUMO route, at most to that route's end
+        (less ARRIVAL_MARGIN_M)."""
+        last = ls.vehicle.getRoute(v)[-1]
+        to_end = float(ls.vehicle.getDrivingDistance(v, last, self._net.getEdge(last).getLength()))
+        to_end = max(1.0, to_end - ARRIVAL_MARGIN_M)
+        return to_end if self.control.route_m is None else min(self.control.route_m, to_end)
+
+    def retire_finished(self, ls: ModuleType, present: Sequence[str]) -> None:
+        """Before a step: the vehicles that completed their route arrive (leave the simulation), as at a route's
+        end; their egos ended their part of the run on the frame that said so."""
+        for v in sorted(self._finished):
+            if v in present:
+                ls.vehicle.remove(v, ls.constants.REMOVE_ARRIVED)
+            self._taken.discard(v)
 
     def command(self, ls: ModuleType, accels: Mapping[str, float], present: Sequence[str], dt: float) -> None:
         """Apply each driven vehicle's commanded acceleration (m/s^2) over the next step: its speed then is its
@@ -118,10 +139,18 @@ class DrivenVehicles:
             if v not in present:
                 continue
             path, stop_m, zone, in_junction = self._route_ahead(ls, v)
+            odometer = float(ls.vehicle.getDistance(v))
+            start, length = self._route.get(v, (odometer, math.inf))
+            done = min(length, max(0.0, odometer - start))
+            finished = v in self._taken and done >= length
+            if finished:
+                self._finished.add(v)
             out.append(DrivenState(
                 id=v, path=path, speed_limit=float(ls.lane.getMaxSpeed(ls.vehicle.getLaneID(v))), stop_m=stop_m,
-                conflict_zone=zone, in_junction=in_junction, odometer_m=float(ls.vehicle.getDistance(v)),
-                collisions=tuple(sorted(set(hits.get(v, ())))), ssm=self._ssm(ls, v), red_m=self._red(ls, v)))
+                conflict_zone=zone, in_junction=in_junction, odometer_m=odometer,
+                collisions=tuple(sorted(set(hits.get(v, ())))), ssm=self._ssm(ls, v), red_m=self._red(ls, v),
+                route_m=None if math.isinf(length) else round(length, 3), route_done_m=round(done, 3),
+                finished=finished))
         return tuple(out)
 
     @staticmethod

@@ -28,7 +28,8 @@ def _rounded(points: np.ndarray | None) -> list | None:
 def _driven_to_json(d: DrivenState) -> dict:
     return {"id": d.id, "path": _rounded(d.path), "speed_limit": d.speed_limit, "stop_m": d.stop_m,
             "conflict_zone": _rounded(d.conflict_zone), "in_junction": d.in_junction, "odometer_m": d.odometer_m,
-            "collisions": list(d.collisions), "ssm": list(d.ssm), "red_m": d.red_m}
+            "collisions": list(d.collisions), "ssm": list(d.ssm), "red_m": d.red_m, "route_m": d.route_m,
+            "route_done_m": d.route_done_m, "finished": d.finished}
 
 
 def _driven_from_json(doc: dict) -> DrivenState:
@@ -51,7 +52,8 @@ def _driven_from_json(doc: dict) -> DrivenState:
                        stop_m=opt(doc["stop_m"]), conflict_zone=points(doc["conflict_zone"]),
                        in_junction=bool(doc["in_junction"]), odometer_m=float(doc["odometer_m"]),
                        collisions=tuple(str(c) for c in doc["collisions"]), ssm=(ssm[0], ssm[1], ssm[2]),
-                       red_m=opt(doc.get("red_m")))
+                       red_m=opt(doc.get("red_m")), route_m=opt(doc.get("route_m")),
+                       route_done_m=float(doc.get("route_done_m", 0.0)), finished=bool(doc.get("finished", False)))
 
 
 def world_to_bytes(world: WorldState) -> bytes:

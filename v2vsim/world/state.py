@@ -67,6 +67,7 @@ class DrivenState:
     collisions: the vehicles SUMO found it touching at this step.
     ssm: SUMO's SSM device so far (min TTC s, max DRAC m/s^2, min PET s); None where no encounter measured one.
     red_m: distance along its lane(s) to the next traffic light's stop line while it shows red or amber.
+    route_m, route_done_m, finished: its route (control.route_m) and its progress along it (the driving score).
     """
 
     id: str
@@ -79,6 +80,9 @@ class DrivenState:
     collisions: tuple[str, ...] = ()
     ssm: tuple[float | None, float | None, float | None] = (None, None, None)
     red_m: float | None = None  # distance to the next traffic light if it shows red or amber (None: no such light)
+    route_m: float | None = None  # the length of the route it must complete (control.route_m), from frame 0
+    route_done_m: float = 0.0  # how much of it is behind it
+    finished: bool = False  # it completed its route at this frame: it leaves the simulation at the next step
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,7 @@ NETS = SCENARIOS / "nets"
 
 
 def _scenario(*overrides: str):
-    return load_scenario(OCCLUDED, list(overrides))
+    return load_scenario(OCCLUDED, ["control=null", *overrides])  # the traffic alone, open loop
 
 
 def _signature(states) -> list:

@@ -1,0 +1,79 @@
+"""The driving score (v2vsim/control/score.py) on hand-made frames: route completion, the leaderboard's penalties
+multiplied per infraction, a timeout only when the run reached its time limit, red-light entries, success."""
+
+from __future__ import annotations
+
+import pytest
+
+from v2vsim.control.measures import DrivenFrame
+from v2vsim.control.score import PENALTY, driving_score, red_light_entries, score_block, total_score
+
+DT = 0.1
+
+
+def _frames(n: int, route_m: float = 50.0, step_m: float = 1.0, finish: bool = False,
+            red: dict[int, float] | None = None, junction_from: int | None = None) -> list[DrivenFrame]:
+    """n frames driving step_m a frame along a route of route_m; `finish`: the last frame completes it."""
+    out = []
+    for k in range(n):
+        done = min(route_m, k * step_m)
+        out.append(DrivenFrame(frame=k, time=k * DT, x=k * step_m, y=0.0, yaw=0.0, speed=step_m / DT,
+                               odometer_m=k * step_m, in_junction=junction_from is not None and k >= junction_from,
+                               collisions=(), ssm=(None, None, None), min_gap_m=5.0, closest=None,
+                               commanded_speed=None, reason="free", phantom=False, red_m=(red or {}).get(k),
+                               route_m=route_m, route_done_m=done, finished=finish and k == n - 1))
+    return out
+
+
+def test_a_completed_route_without_infractions_scores_one_and_succeeds() -> None:
+    b = score_block(_frames(51, finish=True), collisions=0, time_limit_reached=True)
+    assert b["driving_score"] == 1.0 and b["route_completion"] == 1.0 and b["success"] is True
+    assert b["infractions"] == {"collision_vehicle": 0, "red_light": 0, "timeout": 0}
+    assert b["finished_at_s"] == pytest.approx(5.0)
+
+
+def test_each_collision_multiplies_by_0_6() -> None:
+    b = score_block(_frames(51, finish=True), collisions=2, time_limit_reached=True)
+    assert b["driving_score"] == pytest.approx(0.36) and b["success"] is False
+    assert b["infractions"]["collision_vehicle"] == 2
+
+
+def test_a_route_unfinished_at_the_time_limit_is_a_timeout() -> None:
+    b = score_block(_frames(21), collisions=0, time_limit_reached=True)  # 20 of 50 m when the run ended
+    assert b["route_completion"] == pytest.approx(0.4) and b["infractions"]["timeout"] == 1
+    assert b["driving_score"] == pytest.approx(0.4 * PENALTY["timeout"]) and b["success"] is False
+
+
+def test_a_run_stopped_early_is_no_timeout() -> None:
+    b = score_block(_frames(21), collisions=0, time_limit_reached=False)  # Ctrl-C: it did not run out of time
+    assert b["infractions"]["timeout"] == 0 and b["driving_score"] == pytest.approx(0.4)
+    assert b["success"] is False  # not completed
+
+
+def test_collision_and_timeout_multiply() -> None:
+    b = score_block(_frames(11), collisions=1, time_limit_reached=True)
+    assert b["driving_score"] == pytest.approx(0.2 * 0.6 * 0.7)
+
+
+def test_entering_a_junction_on_red_is_an_infraction_and_a_far_red_light_is_not() -> None:
+    # frame 4 has a red stop line 0.5 m ahead, frame 5 is inside the junction: it ran the light
+    assert red_light_entries(_frames(10, red={4: 0.5}, junction_from=5)) == 1
+    # the red light is 30 m further on (a later junction): entering this one is no infraction
+    assert red_light_entries(_frames(10, red={4: 30.0}, junction_from=5)) == 0
+    b = score_block(_frames(51, finish=True, red={4: 0.5}, junction_from=5), collisions=0, time_limit_reached=True)
+    assert b["driving_score"] == pytest.approx(0.7) and not b["success"]
+
+
+def test_no_route_no_score() -> None:
+    assert driving_score(None, {"timeout": 0}) is None
+    frames = [f.__class__(**{**f.__dict__, "route_m": None}) for f in _frames(3)]
+    assert score_block(frames, collisions=0, time_limit_reached=True)["driving_score"] is None
+
+
+def test_the_fleet_total_averages_scores_and_counts_successes() -> None:
+    a = score_block(_frames(51, finish=True), collisions=0, time_limit_reached=True)
+    b = score_block(_frames(21), collisions=1, time_limit_reached=True)
+    t = total_score([a, b])
+    assert t["driving_score"] == pytest.approx((1.0 + 0.4 * 0.6 * 0.7) / 2, abs=1e-4)
+    assert t["successes"] == 1 and t["success"] is False
+    assert t["infractions"] == {"collision_vehicle": 1, "red_light": 0, "timeout": 1}
