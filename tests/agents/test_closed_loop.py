@@ -15,8 +15,9 @@ from .test_run import Run, _still_running
 
 REPO = Path(__file__).resolve().parents[2]
 OCCLUDED = str(REPO / "scenarios" / "t_junction_occluded.yaml")
-ARGS = ("--frames", "20", "--set", "seed=2", "--set", "control.method=none", "--set", "perception.methods=[none]",
-        "--set", "output.rerun=false")
+# two CAVs: the ego plans on `none` (its own LiDAR), so more CAVs would only cost their sensing and encoding
+ARGS = ("--frames", "20", "--set", "seed=2", "--set", "cavs.count=2", "--set", "control.method=none",
+        "--set", "perception.methods=[none]", "--set", "output.rerun=false")
 
 
 def _run(out: Path) -> dict:

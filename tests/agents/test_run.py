@@ -534,7 +534,7 @@ def test_a_method_scores_the_same_whatever_other_methods_run(tmp_path: Path) -> 
     """On the shipped channel a sender's outputs (late fusion) arrive a frame after its features: CoBEVT must
     still warp its features with the features' capture pose, so running late and early beside it changes
     nothing for it (each method fuses with the poses of the messages it fuses)."""
-    args = ["--frames", "8", "--set", "comm.range_m=300", "--set", "output.rerun=false"]
+    args = ["--frames", "8", "--set", "cavs.count=3", "--set", "comm.range_m=300", "--set", "output.rerun=false"]
     a = Run(*args, "--methods", "none,cobevt", "--out", str(tmp_path / "a"))
     b = Run(*args, "--methods", "none,late,early,cobevt", "--out", str(tmp_path / "b"))
     assert a.finish() == 0 and b.finish() == 0, "".join(a.log + b.log)
