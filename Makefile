@@ -16,7 +16,7 @@ demo: install
 test: install
 	$(PYTHON) -m ruff check .
 	$(PYTHON) -m deptry .
-	$(PYTHON) -m pytest -n 2  # two workers (pytest-xdist), the long tests dealt out first (tests/conftest.py)
+	$(PYTHON) -m pytest -n 2 --maxschedchunk 2 --durations=20  # two workers (pytest-xdist), the long tests first, two at a time (tests/conftest.py)
 
 # Before a release: the README's own install steps and the wheel, each in a fresh venv without the system's packages.
 clean-install:

@@ -56,13 +56,17 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
         session.exitstatus = pytest.ExitCode.TESTS_FAILED
 
 
-# Tests that start real processes or install packages, longest first (pytest --durations). xdist's default (load)
-# scheduling deals the first quarter of the list out to the workers in turn: the long tests run on both workers
-# from the start, and the short unit tests fill both at the end instead of a long test running alone as the tail.
-# (--dist worksteal would hand the whole first half, i.e. every long test, to one worker.)
+# Tests that start real processes or install packages, longest first (pytest --durations). `make test` runs xdist's
+# load scheduling with --maxschedchunk 2: each worker takes the next two tests of this order whenever it is free, so
+# the long tests run on both workers from the start and the short unit tests fill both at the end. (Without it,
+# xdist 3.8 hands each worker a block of ~115 consecutive tests at the start and later blocks of up to half of what
+# is left: measured here, one worker ran long tests for 660 s while the other sat idle from 372 s on. --dist
+# worksteal would hand the whole first half, i.e. every long test, to one worker.)
 _LONG_FIRST = ("tests/test_wheel.py", "tests/agents/test_identity.py", "tests/v2vsim/study/test_sweep.py",
-               "tests/agents/test_replay.py", "tests/agents/test_run.py", "tests/test_fusion_plugin.py",
-               "tests/v2vsim/env/", "tests/v2vsim/comm/test_fuzz.py", "tests/v2vsim/training/", "tests/agents/")
+               "tests/agents/test_replay.py", "tests/agents/test_run.py", "tests/agents/test_closed_loop.py",
+               "tests/test_fusion_plugin.py", "tests/scripts/", "tests/v2vsim/env/", "tests/v2vsim/comm/test_fuzz.py",
+               "tests/v2vsim/training/", "tests/agents/", "tests/models/test_overfit.py",
+               "tests/v2vsim/evaluation/test_one_prediction_path.py", "tests/v2vsim/traffic/")
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:

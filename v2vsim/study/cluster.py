@@ -32,6 +32,7 @@ from v2vsim.study.plan import RunSpec
 from v2vsim.study.runs import LOG, STOP_GRACE_S
 
 SCRATCH_OUT = "run"  # the run's --out inside the task's scratch directory
+CONNECT_TIMEOUT_S = 10.0  # how long --scheduler may take to answer (Dask retries a refused connection until then)
 
 
 def connect(address: str) -> Any:
@@ -42,7 +43,7 @@ def connect(address: str) -> Any:
         raise ConfigError("--engine dask: the 'distributed' package is not installed; "
                           "pip install -e \".[cluster]\"") from None
     try:
-        return Client(address, timeout="10s", set_as_default=False)
+        return Client(address, timeout=f"{CONNECT_TIMEOUT_S:g}s", set_as_default=False)
     except (OSError, TimeoutError) as e:
         raise ConfigError(f"--scheduler {address}: no Dask scheduler answered ({e})") from None
 

@@ -659,15 +659,17 @@ def test_the_dask_engine_runs_a_sweep_on_a_local_cluster_with_the_same_outputs(t
     assert (out / "sweep_comm.medium_iou_vehicle.png").stat().st_size > 0
 
 
-def test_dask_engine_options_are_checked(tmp_path: Path) -> None:
-    import subprocess
+def test_dask_engine_options_are_checked(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    from v2vsim.study import cluster
 
-    base = [sys.executable, "-m", "v2vsim.cli", "sweep", str(SCENARIO), "--seeds", "0", "--out", str(tmp_path / "s")]
-    r = subprocess.run([*base, "--engine", "dask"], capture_output=True, text=True, cwd=REPO, timeout=60)
-    assert r.returncode == 2 and "--engine dask needs --scheduler" in r.stderr
-    r = subprocess.run([*base, "--engine", "dask", "--scheduler", "tcp://127.0.0.1:9"], capture_output=True,
-                       text=True, cwd=REPO, timeout=60)
-    assert r.returncode == 2 and "no Dask scheduler answered" in r.stderr, r.stderr
+    base = ["sweep", str(SCENARIO), "--seeds", "0", "--out", str(tmp_path / "s")]
+    assert main([*base, "--engine", "dask"]) == 2
+    assert "--engine dask needs --scheduler" in capsys.readouterr().err
+    monkeypatch.setattr(cluster, "CONNECT_TIMEOUT_S", 1.0)  # Dask retries a refused port until the timeout (10 s)
+    assert main([*base, "--engine", "dask", "--scheduler", "tcp://127.0.0.1:9"]) == 2
+    err = capsys.readouterr().err
+    assert "--scheduler tcp://127.0.0.1:9: no Dask scheduler answered" in err and "\n" not in err.strip(), err
 
 
 def test_retrained_weights_rerun_every_run(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
