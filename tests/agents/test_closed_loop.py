@@ -101,7 +101,8 @@ def test_a_route_completed_early_ends_the_run_complete_with_exit_0(tmp_path: Pat
     run stops there."""
     out = tmp_path / "run"
     done = subprocess.run([sys.executable, "-m", "v2vsim.cli", "run", OCCLUDED, "--out", str(out), "--frames", "100",
-                           "--set", "seed=2", "--set", "control.method=oracle", "--set", "control.route_m=15",
+                           "--set", "seed=2", "--set", "cavs.count=2", "--set", "control.method=oracle",
+                           "--set", "control.route_m=15",
                            "--set", "perception.methods=[none]", "--set", "output.rerun=false"],
                           capture_output=True, text=True, timeout=400)
     assert done.returncode == 0, done.stderr[-3000:]

@@ -110,6 +110,7 @@ class DrivenVehicles:
         end; their egos ended their part of the run on the frame that said so."""
         for v in sorted(self._finished):
             if v in present:
+                ls.vehicle.unsubscribe(v)  # (a subscription outliving its vehicle fails the next step)
                 ls.vehicle.remove(v, ls.constants.REMOVE_ARRIVED)
             self._taken.discard(v)
 

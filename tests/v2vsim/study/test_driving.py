@@ -10,7 +10,16 @@ from pathlib import Path
 import pytest
 
 from v2vsim.study import plots
-from v2vsim.study.driving import EITHER, DrivingStudy, Versus, driving_study, has_driving, measure, twins
+from v2vsim.study.driving import (
+    EITHER,
+    MEASURES,
+    DrivingStudy,
+    Versus,
+    driving_study,
+    has_driving,
+    measure,
+    twins,
+)
 from v2vsim.study.grid import Axis, Point, parse_axes, points
 from v2vsim.study.plan import RunSpec
 from v2vsim.study.rows import Row, driving_columns
@@ -154,7 +163,7 @@ def test_the_report_compares_each_method_with_none(tmp_path: Path) -> None:
     assert "paired by seed" in section and f"B = {B}" in section
     assert "### collisions per run" in section and "### share of runs with a collision or near miss" in section
     assert "| comm.latency_ms.mean=200 | cobevt | 2.500 | 4.500 | -2.000 [" in section
-    assert section.count("| cobevt |") == 3 * 8 and section.count("| oracle |") == 3 * 8
+    assert section.count("| cobevt |") == 3 * len(MEASURES) and section.count("| oracle |") == 3 * len(MEASURES)
 
 
 # ---- the sweep's files --------------------------------------------------------------------------------------
