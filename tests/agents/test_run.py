@@ -507,8 +507,9 @@ def test_compensation_with_zero_latency_changes_nothing(tmp_path: Path) -> None:
     (bit for bit the live runs they stand for, tests/agents/test_replay.py)."""
     # 16 frames on the shipped link: in the first few the neighbours detect few vehicles that move (a box moves
     # only when matched to the sender's previous one at >= 0.5 m/s), so compensation may not change a thing yet
-    run = Run("--frames", "16", "--set", "comm.range_m=300", "--methods", "none,late,cobevt", "--set",
-              "output.rerun=false", "--set", "output.record_messages=true", "--out", str(tmp_path / "late_off"))
+    run = Run("--frames", "16", "--set", "cavs.count=3", "--set", "comm.range_m=300", "--methods", "none,late,cobevt",
+              "--set", "output.rerun=false", "--set", "output.record_messages=true",
+              "--out", str(tmp_path / "late_off"))
     assert run.finish() == 0, "".join(run.log)
     rec = tmp_path / "late_off"
     ideal = ["--frames", "8", "--set", "comm.bandwidth_mbps=null"]
