@@ -71,7 +71,7 @@ def score_block(frames: Sequence[DrivenFrame], collisions: int, time_limit_reach
             "route_completion": None if completion is None else round(completion, 4),
             "route_m": frames[-1].route_m if frames else None,
             "success": finished and not any(counts.values()),
-            "finished_at_s": frames[-1].time if finished else None,
+            "finished_at_s": round(frames[-1].time, 3) if finished else None,
             "infractions": counts}
 
 
