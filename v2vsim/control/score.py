@@ -13,6 +13,8 @@ the CARLA leaderboard defines it, on the frames one driven vehicle's ego logged 
   these scenarios (no pedestrians, no static obstacles on the road, SUMO priority junctions without stop signs).
 - driving_score = route_completion x the product of the penalties (one factor per infraction).
 - success: the route completed and no infraction.
+- efficiency (a sweep's, v2vsim/study/driving.py): the oracle's completion time on the same configuration (grid point
+  but control.method, seed) over the run's, when both completed their routes: 1 drives as fast as the oracle.
 """
 
 from __future__ import annotations
@@ -87,4 +89,7 @@ def total_score(vehicles: Sequence[dict[str, Any]]) -> dict[str, Any]:
                                  if scored else None),
             "success": bool(vehicles) and all(v.get("success") for v in vehicles),
             "successes": sum(1 for v in vehicles if v.get("success")),
+            # when the last driven vehicle completed its route (null: one did not); the sweep's efficiency reads it
+            "finished_at_s": (max(v["finished_at_s"] for v in vehicles)
+                              if vehicles and all(v.get("finished_at_s") is not None for v in vehicles) else None),
             "infractions": counts}

@@ -24,10 +24,13 @@ METHOD_KEY = "control.method"
 BASELINE = "none"
 METHOD_COLUMN = "driving_method"  # present on every row of a closed-loop run, absent from open-loop ones
 EITHER = "collisions_or_near_misses"  # 0/1 per run: a collision or a near miss happened
-MEASURES = ("driving_score", "success", "route_completion", "collisions", "near_misses", EITHER, "min_ttc_s",
-            "min_gap_m", "time_to_clear_s", "hard_braking", "phantom_braking")
+EFFICIENCY = "efficiency"  # the oracle's completion time over the run's, same configuration (v2vsim/control/score.py)
+ORACLE = "oracle"
+MEASURES = ("driving_score", "success", "route_completion", EFFICIENCY, "collisions", "near_misses", EITHER,
+            "min_ttc_s", "min_gap_m", "time_to_clear_s", "hard_braking", "phantom_braking")
 LABELS = {"driving_score": "driving score (0-1)", "success": "share of runs that succeeded",
           "route_completion": "route completion (0-1)",
+          EFFICIENCY: "efficiency (the oracle's completion time over the run's)",
           "collisions": "collisions per run", "near_misses": "near misses per run (driven vehicles with one)",
           EITHER: "share of runs with a collision or near miss", "min_ttc_s": "min TTC (s)",
           "min_gap_m": "min gap (m)", "time_to_clear_s": "time to clear the junction (s)",
@@ -126,13 +129,33 @@ def runs_by_point(rows: Sequence[Row]) -> dict[str, dict[int, dict[str, Any]]]:
     return out
 
 
-def twins(axes: Sequence[Axis], pts: Sequence[Point]) -> list[tuple[Point, Point]]:
-    """(point, its none twin) for every point whose control.method is not none; [] when control.method is not
-    swept or none is not among its values."""
+def with_efficiency(runs: dict[str, dict[int, dict[str, Any]]], axes: Sequence[Axis], pts: Sequence[Point]
+                    ) -> dict[str, dict[int, dict[str, Any]]]:
+    """`runs` with driving_efficiency on every run whose oracle twin (same seed, same other axes) and itself both
+    completed their routes: the oracle's completion time over the run's (the oracle's own runs: 1)."""
+    twin_of = {p.pid: o.pid for p, o in twins(axes, pts, ORACLE)}
+    out: dict[str, dict[int, dict[str, Any]]] = {}
+    for pid, by_seed in runs.items():
+        oracle = runs.get(twin_of.get(pid, ""), {})
+        out[pid] = {}
+        for seed, m in by_seed.items():
+            mine = m.get("driving_finished_at_s")
+            theirs = m.get("driving_finished_at_s") if m.get(METHOD_COLUMN) == ORACLE else (
+                oracle.get(seed, {}).get("driving_finished_at_s"))
+            eff = theirs / mine if isinstance(mine, (int, float)) and isinstance(theirs, (int, float)) and mine > 0 \
+                else None
+            out[pid][seed] = m if eff is None else {**m, f"driving_{EFFICIENCY}": eff}
+    return out
+
+
+def twins(axes: Sequence[Axis], pts: Sequence[Point], baseline: str = BASELINE) -> list[tuple[Point, Point]]:
+    """(point, its twin) for every point whose control.method is not `baseline` (none; the oracle for efficiency),
+    the twin being the point with the baseline and the same other values; [] when control.method is not swept or
+    the baseline is not among its values."""
     k = next((j for j, a in enumerate(axes) if a.key == METHOD_KEY), None)
     if k is None:
         return []
-    base = next((i for i, v in enumerate(axes[k].values) if str(v) == BASELINE), None)
+    base = next((i for i, v in enumerate(axes[k].values) if str(v) == baseline), None)
     if base is None:
         return []
     by = {p.indices: p for p in pts}
@@ -173,7 +196,7 @@ def paired(a: dict[int, dict[str, Any]], t: dict[int, dict[str, Any]], name: str
 def driving_study(rows: Sequence[Row], axes: Sequence[Axis], pts: Sequence[Point], b: int = DEFAULT_B,
                   rng_seed: int = DEFAULT_RNG_SEED) -> DrivingStudy:
     """Each point's measures alone, and every non-none control.method against its none twin (module doc)."""
-    runs = runs_by_point(rows)
+    runs = with_efficiency(runs_by_point(rows), axes, pts)
     k = next((j for j, a in enumerate(axes) if a.key == METHOD_KEY), None)
     alone = []
     for p in pts:

@@ -227,3 +227,23 @@ def test_without_another_swept_key_the_plot_is_a_bar_chart_over_methods(tmp_path
                 tmp_path) for p in pts for s in SEEDS]
     (png,) = plots.plot_driving(tmp_path, driving_study(rows, axes, pts, B), "s")
     assert png.name == "sweep_driving_control.method.png" and png.stat().st_size > 5000
+
+
+def test_efficiency_is_the_oracle_s_completion_time_over_the_run_s_on_the_same_seed(tmp_path: Path) -> None:
+    """issue 53: oracle completes in 10 s + seed, cobevt in 12.5 s + seed, none never completes its route."""
+    axes = parse_axes(["control.method=oracle,none,cobevt"])
+    pts = points(axes)
+    done = {"oracle": 10.0, "cobevt": 12.5, "none": None}
+    rows = []
+    for p in pts:
+        method = p.texts[0]
+        for s in SEEDS:
+            t = done[method]
+            total = {**_totals(method, 0, s), "finished_at_s": None if t is None else t + s}
+            rows.append(Row(p, s, "none", driving_columns({"method": method, "total": total}), tmp_path))
+    study = driving_study(rows, axes, pts, b=B)
+    got = {pd.method: pd.measures["efficiency"] for pd in study.points}
+    assert got["oracle"] is not None and got["oracle"].mean == pytest.approx(1.0)
+    expected = sum((10.0 + s) / (12.5 + s) for s in SEEDS) / len(SEEDS)
+    assert got["cobevt"] is not None and got["cobevt"].mean == pytest.approx(expected)
+    assert got["none"] is None  # it never completed: no efficiency, rather than a made-up one
