@@ -18,7 +18,7 @@ from .test_run import Run, _still_running
 REPO = Path(__file__).resolve().parents[2]
 OCCLUDED = str(REPO / "scenarios" / "t_junction_occluded.yaml")
 # two CAVs: the ego plans on `none` (its own LiDAR), so more CAVs would only cost their sensing and encoding
-ARGS = ("--frames", "20", "--set", "seed=2", "--set", "cavs.count=2", "--set", "control.method=none",
+ARGS = ("--frames", "15", "--set", "seed=2", "--set", "cavs.count=2", "--set", "control.method=none",
         "--set", "perception.methods=[none]", "--set", "output.rerun=false")
 
 
@@ -35,7 +35,7 @@ def test_a_closed_loop_run_drives_reports_and_repeats_itself(tmp_path: Path) -> 
     d = a["driving"]
     assert d["method"] == "none" and d["driven"] == ["cav0"] and d["actuation_delay_frames"] == 2
     v = d["vehicles"]["cav0"]
-    assert v["frames"] == 20 and v["progress_m"] > 0 and v["min_gap_m"] is not None
+    assert v["frames"] == 15 and v["progress_m"] > 0 and v["min_gap_m"] is not None
     assert d["total"]["collisions"] == v["collisions"]
     assert v["ssm"]["conflicts"] is not None  # the driver's done carried SUMO's SSM log
     assert (tmp_path / "a" / "ssm.xml").is_file()
