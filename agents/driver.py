@@ -143,6 +143,7 @@ def drive(args: AgentArgs, bus: Bus) -> int:
     timer = StageTimer()
     ssm_file = str(Path(args.out) / "ssm.xml") if closed_loop and args.out else None
     backend = make_backend(sc, ssm_file=ssm_file, closed_loop=closed_loop)
+    word: dict | None = None  # what the driver tells the egos as it ends (final_word): computed once
     try:
         world = backend.reset()
         static = static_to_bytes(backend.static)
@@ -190,11 +191,12 @@ def drive(args: AgentArgs, bus: Bus) -> int:
             report_progress("driver", k + 1, frames)
         if sc.transport.clock != "realtime":
             wait_acks(last)  # CAVs end on `done`: not before the egos have everything they need
-        bus.put("done", json.dumps({"frames": last + 1, **final_word(bus, backend, closed_loop, ssm_file)}).encode())
+        word = final_word(bus, backend, closed_loop, ssm_file)
+        bus.put("done", json.dumps({"frames": last + 1, **word}).encode())
     finally:
         # Stopped (Ctrl-C) or failed: the egos write what they have, and take the SSM conflicts and refusals from
         # this process's bye instead of its done (agents.ego.driver_word).
-        bus.leave_word(**final_word(bus, backend, closed_loop, ssm_file))
+        bus.leave_word(**(word if word is not None else final_word(bus, backend, closed_loop, ssm_file)))
         write_timing(args.out, "driver", timer, bus.control_rejections())
     return 0
 

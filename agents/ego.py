@@ -140,8 +140,8 @@ def driver_refusals(word: dict) -> dict[tuple[str, str], int]:
 def driving_summary(sc: Scenario, me: str, pilot: Pilot, word: dict, time_limit_reached: bool) -> dict:
     """metrics.json `driving` of this ego's vehicle. SUMO writes its SSM log when the simulation closes, after the
     last frame: the driver counts its conflicts and says them as it ends (`word`, from driver_word); None when it
-    never said them (it died). `time_limit_reached`: the run went through its last frame (a route not completed by
-    then is a timeout; a run stopped early is not)."""
+    never said them (it died). `time_limit_reached`: the run went on until its last frame or the route's end (status
+    complete: a route not completed by then is a timeout; a run stopped early is not)."""
     assert sc.control is not None
     conflicts = word.get("ssm_conflicts")
     count = conflicts.get(me, 0) if isinstance(conflicts, dict) else None
@@ -281,7 +281,6 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
     status = "complete"
     realtime = sc.transport.clock == "realtime"
     lost_after = sc.transport.lost_after_s
-    finished_route = False  # closed loop: its vehicle completed its route (the run ends for it before the last frame)
     k = -1
     working = 0  # the frame being waited for or worked on (for a crash's status)
     code = 0
@@ -386,7 +385,6 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
             if drive is not None and drive.logged.finished:  # its route is done: it arrives, its run is complete
                 print(f"v2vsim-ego {me}: route completed at frame {k} ({drive.logged.time:.1f} s)", file=sys.stderr,
                       flush=True)
-                finished_route = True
                 break
     except Stop:
         # The runner stops everyone when the driver dies: say so rather than "interrupted".
@@ -425,8 +423,7 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
                       else STOPPING_WAIT_S)
             word = driver_word(box, bus, done_doc, wait_s)
             if pilot is not None:
-                summary.driving = driving_summary(sc, me, pilot, word,
-                                                  went_to_end and (finished_route or k + 1 >= args.frames))
+                summary.driving = driving_summary(sc, me, pilot, word, went_to_end)
             control = Counter(bus.control_rejections()) + Counter(driver_refusals(word))
             by_kind = {kind: ib.stats for kind, ib in inboxes.items()}
             by_kind["control"] = control_rejections(control, stats)

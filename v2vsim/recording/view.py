@@ -13,10 +13,11 @@ import shutil
 import socket
 import subprocess
 import sys
-import tempfile
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
+
+from v2vsim.config import ConfigError, check_output_dir
 
 
 class ViewError(Exception):
@@ -112,14 +113,10 @@ def screenshots(rrd: Path, out: Path, frames: list[int], settle_s: float = 2.0) 
     Needs a Vulkan driver (a GPU, or Mesa's software lavapipe: `apt-get install mesa-vulkan-drivers`)."""
     from rerun.experimental import ViewerClient
 
-    if out.exists() and not out.is_dir():
-        raise ViewError(f"--screenshots {out}: is a file, not a directory")
     try:
-        out.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryFile(dir=out, prefix=".v2vsim-write-check-"):
-            pass
-    except OSError as e:
-        raise ViewError(f"--screenshots {out}: cannot write there: {(e.strerror or str(e)).lower()}") from None
+        check_output_dir(out, "--screenshots")  # the same check as `run --out`: one line, before the viewer starts
+    except ConfigError as e:
+        raise ViewError(str(e)) from None
     check_viewer_can_render()
     os.environ.setdefault("RERUN_ANALYTICS", "0")
     try:
