@@ -164,6 +164,29 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="sweep directory (resumable: complete runs there are reused)")
     p.set_defaults(func=verbs.cmd_sweep)
 
+    p = sub.add_parser("benchmark", help="the closed-loop benchmark: the catalogue's occlusion families x methods x "
+                       "configurations x seeds, then leaderboard.md/csv/json and plots (docs/benchmark.md)")
+    p.add_argument("--profile", default="quick", help="the catalogue's profile: quick (about 45 min on 2 cores) or "
+                   "full (default quick)")
+    p.add_argument("--catalogue", default=None, metavar="FILE",
+                   help="a catalogue YAML (default: the shipped scenarios/benchmark/catalogue.yaml)")
+    p.add_argument("--split", default="heldout", choices=["heldout", "tuning"],
+                   help="which of the catalogue's seeds: heldout (the leaderboard's) or tuning (calibration)")
+    p.add_argument("--families", default=None, help="comma-separated family names (default: all)")
+    p.add_argument("--methods", default=None, help="comma-separated methods, oracle among them (default: the "
+                   "profile's)")
+    p.add_argument("--seeds", type=int, default=None, metavar="N", help="the split's first N seeds (default: the "
+                   "profile's)")
+    p.add_argument("--jobs", type=int, default=None, help="runs at a time (as sweep's --jobs)")
+    p.add_argument("--engine", choices=["local", "dask"], default="local",
+                   help="local: child processes here; dask: one task per run on a Dask distributed cluster")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS", help="with --engine dask: the scheduler")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY.PATH=VALUE",
+                   help="an override for every run of every family (repeatable)")
+    p.add_argument("--bootstrap", type=int, default=1000, metavar="B", help="bootstrap resamples (default 1000)")
+    p.add_argument("--out", required=True, help="benchmark directory (resumable: complete runs there are reused)")
+    p.set_defaults(func=verbs.cmd_benchmark)
+
     p = sub.add_parser("bandwidth", help="bandwidth vs accuracy: fixed shares of BEV cells sent, in the env "
                                          "(v2vsim.env): bandwidth.csv/md/png")
     _scenario_args(p)

@@ -233,6 +233,19 @@ def cmd_sweep(args: argparse.Namespace) -> int:
                            replay=args.replay, include_degraded=args.include_degraded))
 
 
+def cmd_benchmark(args: argparse.Namespace) -> int:
+    from v2vsim.study.benchmark import BenchmarkArgs, benchmark
+
+    def names(text: str | None) -> tuple[str, ...]:
+        return tuple(n.strip() for n in text.split(",") if n.strip()) if text else ()
+
+    return benchmark(BenchmarkArgs(out=Path(args.out), profile=args.profile,
+                                   catalogue=Path(args.catalogue) if args.catalogue else None, split=args.split,
+                                   families=names(args.families), methods=names(args.methods), seeds=args.seeds,
+                                   jobs=args.jobs, engine=args.engine, scheduler=args.scheduler,
+                                   overrides=tuple(args.overrides), bootstrap=args.bootstrap))
+
+
 def cmd_bandwidth(args: argparse.Namespace) -> int:
     from v2vsim.data.record import parse_seeds
     from v2vsim.env.bandwidth import bandwidth_curve, parse_fractions

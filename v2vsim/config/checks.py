@@ -7,6 +7,7 @@ import re
 import tempfile
 from pathlib import Path
 
+from models.registry import METHODS
 from v2vsim.config.errors import ConfigError
 from v2vsim.config.schema import ENCODERS_BY_MODALITY, Scenario
 from v2vsim.config.validate import _Loader
@@ -107,7 +108,9 @@ def _check_control(sc: Scenario, loader: _Loader) -> None:
     if sc.traffic.backend != "sumo":
         loader.fail("control", f"needs traffic.backend 'sumo' (libsumo drives the vehicle); got "
                     f"{sc.traffic.backend!r}: remove the control section for an open-loop run")
-    if c.method != "oracle" and c.method not in sc.perception.methods:
+    if c.perceive == "driving" and c.method != "oracle" and c.method not in METHODS:
+        loader.fail("control.method", f"{c.method!r} is no fusion method; allowed: oracle, {', '.join(METHODS)}")
+    if c.perceive == "all" and c.method != "oracle" and c.method not in sc.perception.methods:
         loader.fail("control.method", f"{c.method!r} is not among perception.methods "
                     f"({', '.join(sc.perception.methods)}); allowed: oracle or one of those")
     d = c.actuation_delay_frames

@@ -108,7 +108,7 @@ def load_scenario(path: str | Path, overrides: typing.Sequence[str] = ()) -> Sce
     sc = loader.section(Scenario, raw, "")
     sc = dataclasses.replace(sc, source=str(path), overrides=tuple(overrides))
     _check_cross_fields(sc, loader)
-    return resolve_auth(sc)
+    return resolve_perceive(resolve_auth(sc))
 
 
 def scenario_from_dict(raw: dict, base_dir: Path | None = None, source: str = "<dict>") -> Scenario:
@@ -116,7 +116,17 @@ def scenario_from_dict(raw: dict, base_dir: Path | None = None, source: str = "<
     loader = _Loader(source, base_dir)
     sc = dataclasses.replace(loader.section(Scenario, raw, ""), source=source)
     _check_cross_fields(sc, loader)
-    return resolve_auth(sc)
+    return resolve_perceive(resolve_auth(sc))
+
+
+def resolve_perceive(sc: Scenario) -> Scenario:
+    """control.perceive driving: perception.methods becomes the one method the ego drives on (oracle: none), so
+    every process (the CAVs ship only what it reads, the ego fuses only it) and metrics.json hold what ran."""
+    c = sc.control
+    if c is None or c.perceive != "driving":
+        return sc
+    methods = ("none",) if c.method == "oracle" else (c.method,)
+    return dataclasses.replace(sc, perception=dataclasses.replace(sc.perception, methods=methods))
 
 
 def resolve_auth(sc: Scenario) -> Scenario:

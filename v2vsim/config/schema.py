@@ -62,6 +62,9 @@ class HiddenFoeConfig:
                                                lambda v: -10 <= v[0] <= v[1] <= 10)
     attentive: bool = False
     side: Literal["auto", "left", "right"] = "auto"  # auto: the main-road arm that buildings hide from the ego
+    # its free-flow speed: null = the lane's speed limit; a benchmark grid's second factor (as Coopernaut's)
+    speed_mps: float | None = _f(None, "0 < v <= 40 (m/s) or null (the lane's speed limit)",
+                                 lambda v: 0 < v <= 40)
 
 
 @dataclass(frozen=True)
@@ -349,6 +352,10 @@ class ControlConfig:
     # its SUMO route from where it is at frame 0, or null: to the end of that route. A vehicle that completes it
     # leaves the simulation (it arrived); the run's duration is the time limit.
     route_m: float | None = _f(None, "> 0 (m) or null (to the end of the vehicle's SUMO route)", _pos)
+    # What the ego computes: `all` of perception.methods (each scored beside the one it drives on), or only what
+    # it `driving` on (perception.methods becomes [method]; oracle: [none], the cheapest map that still scores):
+    # a benchmark point pays for one method, not eight (docs/benchmark.md).
+    perceive: Literal["all", "driving"] = "all"
 
 
 @dataclass(frozen=True)

@@ -26,12 +26,13 @@ What is placed, and how (deterministic per seed; nothing here touches the backgr
    free-flow arrival does not know about traffic queued ahead of the ego: behind a yielding leader the ego is late
    and the foe passes before it reaches its stop line.
 4. Type: a copy of the background car with no driver imperfection and no speed spread (its timing must follow the
-   plan). `attentive: false` (the default) sets `junctionModel.jmIgnoreJunctionFoeProb=1` on it: SUMO's
-   priority-road drivers otherwise brake for any vehicle already inside the junction, so a minor-road vehicle that
-   pulls out in front of them never ends in a collision (measured with libsumo 1.28 on the T-junction; the bare key
-   `jmIgnoreJunctionFoeProb` is stored but has no effect, only the `junctionModel.` form does). It is a modelling
-   choice: a driver who does not react to a car pulling out. `jmIgnoreFoeProb` is not set: it concerns foes that
-   have right of way, which the foe never meets on the priority road.
+   plan); `speed_mps` sets its free-flow speed (else the lane's limit). `attentive: false` (the default) sets
+   `junctionModel.jmIgnoreJunctionFoeProb=1` on it: SUMO's priority-road drivers otherwise brake for any vehicle
+   already inside the junction, so a minor-road vehicle that pulls out in front of them never ends in a collision
+   (measured with libsumo 1.28 on the T-junction; the bare key `jmIgnoreJunctionFoeProb` is stored but has no effect,
+   only the `junctionModel.` form does). It is a modelling choice: a driver who does not react to a car pulling out.
+   `jmIgnoreFoeProb` is not set: it concerns foes that have right of way, which the foe never meets on the priority
+   road.
 
 The backend calls `insert_hidden_foe` in every launch, look-ahead runs included, so the CAV placement is chosen in
 the traffic the run will have.
@@ -178,11 +179,15 @@ def foe_arm(net: sumolib.net.Net, topology: Topology, ego: CavPlan, buildings: t
     return max(sides.items(), key=score)
 
 
-def _define_foe_type(ls: ModuleType, base_type: str, attentive: bool) -> None:
-    """The foe's vType: the background car without imperfection or speed spread (see module doc, 4)."""
+def _define_foe_type(ls: ModuleType, base_type: str, attentive: bool, speed_mps: float | None = None) -> None:
+    """The foe's vType: the background car without imperfection or speed spread (see module doc, 4); with
+    `speed_mps` its maximum speed, and a speed factor that lets it reach that speed above the lane's limit too."""
     ls.vehicletype.copy(base_type, FOE_TYPE)
     ls.vehicletype.setImperfection(FOE_TYPE, 0.0)
     ls.vehicletype.setSpeedDeviation(FOE_TYPE, 0.0)
+    if speed_mps is not None:  # free-flow speed = min(lane limit x factor, max speed) = speed_mps (limit >= 10 m/s)
+        ls.vehicletype.setMaxSpeed(FOE_TYPE, speed_mps)
+        ls.vehicletype.setSpeedFactor(FOE_TYPE, 4.0)
     if not attentive:
         ls.vehicletype.setParameter(FOE_TYPE, "junctionModel.jmIgnoreJunctionFoeProb", "1")
 
@@ -228,7 +233,7 @@ def insert_hidden_foe(ls: ModuleType, net: sumolib.net.Net, topology: Topology, 
         route = _straight(arm)
     except ValueError as e:  # the net has no such arm: a scenario problem, said in one line
         raise ConfigError(f"{scenario.source}: {e}") from None
-    _define_foe_type(ls, base_type, cfg.attentive)
+    _define_foe_type(ls, base_type, cfg.attentive, cfg.speed_mps)
     ego_shape = _ego_lane_shape(net, ego)
     ego_lane = net.getEdge(ego.edges[0]).getLane(ego.lane)
     ego_arrival = ego.to_stop_line_m / _free_speed(ls, ego_id, ego_lane.getSpeed())

@@ -1,0 +1,220 @@
+"""`v2vsim benchmark`: the catalogue (shipped, thinned by a profile, malformed ones refused in one line), the
+leaderboard on hand-made runs (scores, efficiency, paired intervals, the power estimate), interruption and resume
+with fake runs, and `control.perceive: driving`."""
+
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+
+import pytest
+
+from v2vsim.cli import main
+from v2vsim.config import ConfigError, load_scenario
+from v2vsim.study import runs as runs_mod
+from v2vsim.study.benchmark import DRIVING_ONLY, BenchmarkArgs, benchmark, family_sweeps
+from v2vsim.study.catalogue import load_catalogue
+from v2vsim.study.leaderboard import Episode, board, episodes_of, needed_episodes
+from v2vsim.study.plan import RunSpec
+
+REPO = Path(__file__).resolve().parents[3]
+TJ = REPO / "scenarios" / "t_junction_occluded.yaml"
+
+
+def _catalogue(tmp_path: Path, **changes: object) -> Path:
+    doc = {"methods": ["oracle", "none", "cobevt"], "seeds": {"tuning": "100-104", "heldout": "0-4"},
+           "profiles": {"quick": {"seeds": 3, "levels": [2], "methods": ["oracle", "none", "cobevt"]}},
+           "families": [{"name": "pullout", "scenario": str(TJ), "pre_crash": "crossing", "occlusion": "buildings",
+                         "grid": {"traffic.hidden_foe.arrival_offset_s": [[0, 0], [1, 1], [2, 2]]}}]}
+    for k, v in changes.items():
+        doc[k] = v
+    path = tmp_path / "catalogue.yaml"
+    path.write_text(json.dumps(doc))  # JSON is YAML
+    return path
+
+
+def test_the_shipped_catalogue_loads_and_a_profile_thins_each_grid_axis_evenly() -> None:
+    cat = load_catalogue()
+    assert cat.methods[:2] == ("oracle", "none") and len(cat.families) >= 1
+    assert not set(cat.seeds["tuning"]) & set(cat.seeds["heldout"])
+    f = cat.families[0]
+    for a in f.grid:
+        for v in a.texts:  # every grid value loads with the family's scenario
+            load_scenario(f.scenario, [f"{a.key}={v}"])
+    from v2vsim.study.grid import Axis
+
+    a = Axis("k", ("0", "1", "2", "3", "4"), (0, 1, 2, 3, 4))
+    fam = type(f)("x", f.scenario, "", "", (a, a))
+    assert [x.texts for x in fam.axes((1, 2))] == [("2",), ("0", "4")]
+    assert [x.texts for x in fam.axes((3,))] == [("0", "2", "4"), ("2",)]  # an axis the profile omits: 1 value
+    assert fam.axes((9, 5))[0].texts == a.texts
+
+
+@pytest.mark.parametrize(("change", "expect"), [
+    ({"methods": ["none", "oracle"]}, "methods: must start with oracle, none"),
+    ({"methods": ["oracle", "none", "nope"]}, "methods[2]: 'nope' is no method"),
+    ({"seeds": {"tuning": "0-5", "heldout": "4-9"}}, "seeds: tuning and heldout seeds overlap"),
+    ({"seeds": {"tuning": "0-5"}}, "seeds.heldout: missing"),
+    ({"seeds": {"tuning": "x", "heldout": "4-9"}}, "seeds.tuning: --seeds 'x'"),
+    ({"profiles": {"quick": {"seeds": 0, "levels": [1]}}}, "profiles.quick.seeds: expected an integer >= 1"),
+    ({"profiles": {"quick": {"seeds": 1, "levels": [1], "methods": ["oracle", "late"]}}},
+     "profiles.quick.methods: 'late' is not among the catalogue's methods"),
+    ({"colour": 1}, "colour: unknown key"),
+    ({"families": [{"name": "a", "scenario": "nowhere.yaml", "grid": {"seed": [1]}}]},
+     "families[0].scenario: no such file"),
+    ({"families": [{"name": "a", "scenario": str(TJ), "grid": {"seed": [1, 2]}}]},
+     "families[0].grid.seed: --grid seed=1,2: seed cannot be swept here"),
+    ({"families": [{"name": "a", "scenario": str(TJ), "grid": {"comm.range_m": 5}}]},
+     "families[0].grid.comm.range_m: expected a non-empty list"),
+])
+def test_a_malformed_catalogue_is_one_line_naming_the_file_and_key(tmp_path: Path, change: dict, expect: str) -> None:
+    path = _catalogue(tmp_path, **change)
+    with pytest.raises(ConfigError, match="catalogue.yaml: ") as e:
+        load_catalogue(path)
+    assert expect in str(e.value) and "\n" not in str(e.value)
+
+
+def test_control_perceive_driving_computes_only_the_method_it_drives_on() -> None:
+    sc = load_scenario(TJ, ["control.method=attfuse", DRIVING_ONLY])  # attfuse is not in the file's methods
+    assert sc.perception.methods == ("attfuse",)
+    assert load_scenario(TJ, ["control.method=oracle", DRIVING_ONLY]).perception.methods == ("none",)
+    assert load_scenario(TJ).perception.methods == ("none", "late", "cobevt", "v2vnet")  # all: as before
+    with pytest.raises(ConfigError, match="control.method: 'attfuse' is not among perception.methods"):
+        load_scenario(TJ, ["control.method=attfuse"])
+    with pytest.raises(ConfigError, match="control.method: 'x' is no fusion method; allowed: oracle, none"):
+        load_scenario(TJ, ["control.method=x", DRIVING_ONLY])
+
+
+# ---- the leaderboard on hand-made runs -----------------------------------------------------------------------
+
+def _total(method: str, offset: int, seed: int) -> dict:
+    """oracle: always succeeds at 10 s; none: collides at offset 0 and on odd seeds (score 0.6 x completion 0.5),
+    else succeeds at 8 s; cobevt: collides at offset 0 on seed 0 only, else succeeds at 12.5 s."""
+    collides = {"oracle": False, "none": offset == 0 or seed % 2 == 1, "cobevt": offset == 0 and seed == 0}[method]
+    finished = None if collides else {"oracle": 10.0, "none": 8.0, "cobevt": 12.5}[method]
+    return {"collisions": int(collides), "driving_score": 0.3 if collides else 1.0, "success": not collides,
+            "route_completion": 0.5 if collides else 1.0, "finished_at_s": finished,
+            "infractions": {"collision_vehicle": int(collides), "timeout": 0}}
+
+
+def _metrics(spec: RunSpec) -> dict:
+    over = dict(o.split("=", 1) for o in spec.request["overrides"])
+    method, offset = over["control.method"], int(json.loads(over["traffic.hidden_foe.arrival_offset_s"])[0])
+    row = "none" if method == "oracle" else method
+    return {"status": "complete", "frames": 5, "methods": {row: {"iou_vehicle": 0.5 if row == "cobevt" else 0.2}},
+            "driving": {"method": method, "total": _total(method, offset, spec.seed)}}
+
+
+class FakeJob:
+    def __init__(self, spec: RunSpec) -> None:
+        (spec.out / runs_mod.LOG).write_text("v2vsim: done\n")
+        spec.out.joinpath("metrics.json").write_text(json.dumps(_metrics(spec)))
+
+    def poll(self) -> int | None:
+        return 0
+
+    def interrupt(self) -> None:
+        pass
+
+    def kill(self) -> None:
+        pass
+
+
+class FakeStarter:
+    def __init__(self, interrupt_at: int | None = None) -> None:
+        self.started: list[tuple[str, int]] = []
+        self.interrupt_at = interrupt_at
+
+    def __call__(self, spec: RunSpec) -> FakeJob:
+        if self.interrupt_at is not None and len(self.started) == self.interrupt_at:
+            raise KeyboardInterrupt
+        self.started.append((spec.point.pid, spec.seed))
+        assert DRIVING_ONLY in spec.request["overrides"]  # every run pays for the method it drives on only
+        return FakeJob(spec)
+
+
+def test_fake_benchmark_resumes_after_ctrl_c_and_writes_the_leaderboard(tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(runs_mod.time, "sleep", lambda s: None)
+    out = tmp_path / "bench"
+    args = BenchmarkArgs(out=out, catalogue=_catalogue(tmp_path), bootstrap=300)
+    [(name, s)] = family_sweeps(args, load_catalogue(args.catalogue))
+    assert name == "pullout" and s.seeds == "0-2" and s.grid == (
+        "control.method=oracle,none,cobevt", "traffic.hidden_foe.arrival_offset_s=[0, 0],[2, 2]")
+    log = io.StringIO()
+    first = FakeStarter(interrupt_at=7)
+    assert benchmark(args, start=first, stream=log) == 130
+    assert "run the same command again to resume" in log.getvalue() and not (out / "leaderboard.md").exists()
+    again = FakeStarter()
+    log = io.StringIO()
+    assert benchmark(args, start=again, stream=log) == 0
+    assert len(first.started) == 7 and len(again.started) == 18 - 7  # 3 methods x 2 configs x 3 seeds
+    assert not set(first.started) & set(again.started)
+    assert "7 reused" in log.getvalue()
+
+    doc = json.loads((out / "leaderboard.json").read_text())
+    overall = next(b for b in doc["boards"] if b["scope"] == "overall")
+    assert overall["episodes"] == 6
+    m = overall["methods"]
+    # none collides in 4 of 6 episodes (offset 0: 3, offset 2: seed 1); cobevt in 1
+    assert m["oracle"]["driving_score"]["mean"] == 1.0 and m["oracle"]["efficiency"]["mean"] == 1.0
+    assert m["none"]["collision"]["mean"] == pytest.approx(4 / 6)
+    assert m["none"]["driving_score"]["mean"] == pytest.approx((4 * 0.3 + 2) / 6)
+    assert m["cobevt"]["success"]["mean"] == pytest.approx(5 / 6)
+    assert m["cobevt"]["efficiency"]["mean"] == pytest.approx(0.8)  # 10 / 12.5 on the 5 it finished
+    assert m["none"]["efficiency"]["mean"] == pytest.approx(1.25) and m["none"]["efficiency"]["seeds"] == 2
+    assert m["oracle"]["iou_vehicle"] is None and m["cobevt"]["iou_vehicle"]["mean"] == 0.5
+    d = overall["versus_none"]["cobevt"]["collision"]
+    assert d["mean"] == pytest.approx(-0.5) and d["n"] == 6 and d["lo"] < -0.5 < d["hi"] <= 0.0
+    pair = next(p for p in overall["pairs"] if (p["a"], p["b"], p["measure"]) == ("oracle", "cobevt",
+                                                                                 "driving_score"))
+    assert pair["mean"] == pytest.approx(0.7 / 6, abs=1e-6) and not pair["excludes_zero"]
+    assert pair["needed_episodes"] == needed_episodes([0.7, 0, 0, 0, 0, 0]) > 6
+    md = (out / "leaderboard.md").read_text()
+    assert "## Overall (6 episodes)" in md and "## Family pullout (6 episodes)" in md
+    rank = [ln.split("|")[1].strip() for ln in md.split("## Overall")[1].split("###")[0].splitlines()
+            if ln.startswith("| ") and not ln.startswith("| method")]
+    assert rank == ["oracle", "cobevt", "none"]
+    assert "| cobevt | none | 6 |" in md
+    csv_head = (out / "leaderboard.csv").read_text().splitlines()[0]
+    assert csv_head.startswith("scope,method,episodes,driving_score,driving_score_lo,driving_score_hi,")
+    for png in ("leaderboard_score.png", "leaderboard_families.png"):
+        assert (out / png).stat().st_size > 5000
+    assert (out / "families" / "pullout" / "sweep.md").is_file()
+
+
+def test_episodes_pair_methods_by_configuration_and_seed_and_skip_incomplete_runs() -> None:
+    rows = [{"control.method": m, "traffic.hidden_foe.arrival_offset_s": [1, 1], "seed": s, "method": m,
+             "status": "complete" if (m, s) != ("none", 1) else "degraded: cav1 lost",
+             "driving_method": m, "driving_driving_score": 1.0, "driving_success": 1, "driving_collisions": 0,
+             "driving_route_completion": 1.0, "driving_finished_at_s": 9.0, "iou_vehicle": 0.3}
+            for m in ("none", "cobevt") for s in (0, 1)]
+    doc = {"grid": [{"key": "control.method"}, {"key": "traffic.hidden_foe.arrival_offset_s"}], "rows": rows}
+    eps = episodes_of("f", doc)
+    assert set(eps) == {Episode("f", "arrival_offset_s=[1, 1]", 0), Episode("f", "arrival_offset_s=[1, 1]", 1)}
+    assert set(eps[Episode("f", "arrival_offset_s=[1, 1]", 1)]) == {"cobevt"}
+    b = board("f", eps, ["oracle", "none", "cobevt"], boot=200)
+    assert "oracle" not in b.alone and b.versus_none["cobevt"]["driving_score"].n == 1
+
+
+def test_needed_episodes_is_the_paired_normal_power_formula() -> None:
+    assert needed_episodes([1.0]) is None and needed_episodes([0.0, 0.0]) is None
+    # mean 0.1, sample sd 0.2 (two values 0.1 -+ 0.2 / sqrt 2): ((1.95996 + 0.84162) x 0.2 / 0.1)^2 = 31.4 -> 32
+    diffs = [0.1 - 0.2 / 2 ** 0.5, 0.1 + 0.2 / 2 ** 0.5]
+    assert needed_episodes(diffs) == 32
+    assert needed_episodes([-x for x in diffs]) == 32
+
+
+def test_benchmark_options_are_checked_before_anything_is_written(tmp_path: Path,
+                                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "b"
+    assert main(["benchmark", "--profile", "nope", "--out", str(out)]) == 2
+    assert "--profile nope: allowed: quick, full" in capsys.readouterr().err
+    assert main(["benchmark", "--methods", "oracle,foo", "--out", str(out)]) == 2
+    assert "--methods: 'foo' is not among the catalogue's methods" in capsys.readouterr().err
+    assert main(["benchmark", "--families", "nope", "--out", str(out)]) == 2
+    assert "no family 'nope'" in capsys.readouterr().err
+    assert main(["benchmark", "--seeds", "999", "--out", str(out)]) == 2
+    assert "--seeds 999: the catalogue's heldout split has" in capsys.readouterr().err
+    assert not out.exists()
