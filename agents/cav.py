@@ -25,6 +25,7 @@ from agents.worlds import WorldQueue, world_window
 from v2vsim.comm.codec import Message, encode
 from v2vsim.comm.control import DRIVER
 from v2vsim.comm.share import feature_message
+from v2vsim.config import neighbours_silent
 from v2vsim.evaluation.gt import visible_actor_ids
 from v2vsim.perception.aligned import build_cav_encoder, space_label
 from v2vsim.perception.build import (
@@ -64,6 +65,8 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
     compressor, ratio = build_compressor(sc, encoder.out_channels), wire_ratio(sc)
     compressor = None if compressor is None else compressor.to(device)
     late = "late" in methods
+    # a closed-loop point that computes only `none` reads no neighbour's map: this CAV senses (the visible set) only
+    silent = me not in args.egos and neighbours_silent(sc)
     # comm.share topk: the CAV ranks its cells by its own single-agent confidence; an ego keeps its whole map
     share = sc.comm.share.fraction if sc.comm.share.policy == "topk" and me not in args.egos else 1.0
     # its own single-agent model (late fusion's checkpoint is none's): decoded once a frame for both uses
@@ -126,6 +129,12 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
                 seen_ids = _seen_actor_ids(world, sf)
             with timer.stage("comm"):
                 bus.put("vis", json.dumps({"frame": world.frame, "ids": sorted(seen_ids)}).encode())
+            if silent:
+                if sc.output.rerun:
+                    with timer.stage("recording"):
+                        bus.put("scan", _scan(world, actor.pose, sf, scene, args))
+                timer.frame_done()
+                continue
             with timer.stage("encoding"):
                 feats = encode_features(encoder, sf, sc, precision, modality)
             stamp = {"run_id": args.run_id, "sender_id": me, "frame": world.frame, "capture_time": world.time,

@@ -40,7 +40,7 @@ from v2vsim.comm.control import DRIVER
 from v2vsim.comm.inbox import Inbox
 from v2vsim.comm.stats import CommStats
 from v2vsim.comm.wire_spec import EgoDecoder, ego_wire_spec
-from v2vsim.config import Scenario
+from v2vsim.config import Scenario, neighbours_silent
 from v2vsim.control.measures import driving_block, vehicle_measures
 from v2vsim.control.pilot import Pilot
 from v2vsim.control.score import PENALTY, score_block, total_score
@@ -205,6 +205,7 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
         own_decoder = None if own_decoder is None else replay.decoder(own_decoder, "own")
 
     side = ["vis", "scan"] if sc.output.rerun else ["vis"]
+    silent = neighbours_silent(sc)  # the other CAVs send no map (config.neighbours_silent)
     def check(kind: str, sender: str, data: bytes) -> int:
         if kind == "own":
             return own_decoder.check_arrival("features", data, sender)  # type: ignore[union-attr]
@@ -326,8 +327,12 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
             present = [a.id for a in world.cavs if a.id in args.cavs]
             if not realtime:
                 with timer.stage("wait"):
-                    wait_messages(box, bus, k, present, [kd for kd in [*kinds, *side] if kd != "points"], lost,
-                                  lost_after)
+                    if silent:  # only `none`: its own map, and what every CAV saw
+                        wait_messages(box, bus, k, [c for c in present if c == me], kinds, lost, lost_after)
+                        wait_messages(box, bus, k, present, side, lost, lost_after)
+                    else:
+                        wait_messages(box, bus, k, present, [kd for kd in [*kinds, *side] if kd != "points"], lost,
+                                      lost_after)
                     if "points" in kinds:
                         wait_messages(box, bus, k, [c for c in present if c in lidar_cavs], ["points"], lost,
                                       lost_after)

@@ -102,8 +102,8 @@ def test_a_route_completed_early_ends_the_run_complete_with_exit_0(tmp_path: Pat
     out = tmp_path / "run"
     done = subprocess.run([sys.executable, "-m", "v2vsim.cli", "run", OCCLUDED, "--out", str(out), "--frames", "100",
                            "--set", "seed=2", "--set", "cavs.count=2", "--set", "control.method=oracle",
-                           "--set", "control.route_m=15",
-                           "--set", "perception.methods=[none]", "--set", "output.rerun=false"],
+                           "--set", "control.route_m=15", "--set", "control.perceive=driving",
+                           "--set", "output.rerun=false"],
                           capture_output=True, text=True, timeout=400)
     assert done.returncode == 0, done.stderr[-3000:]
     m = json.loads((out / "metrics.json").read_text())
@@ -117,3 +117,8 @@ def test_a_route_completed_early_ends_the_run_complete_with_exit_0(tmp_path: Pat
     assert "route completed at frame" in done.stderr and "every driven vehicle completed its route" in done.stderr
     assert "error" not in done.stderr.lower(), done.stderr[-3000:]
     assert "| cav0 | 1.00 | 1.00 | yes |" in (out / "report.md").read_text()
+    # control.perceive driving, oracle: the ego computes `none` alone, and cav1 (no ego) neither encodes nor sends
+    assert list(m["methods"]) == ["none"] and m["comm"]["sent"] == 0
+    cav1 = json.loads((out / "timing" / "cav.cav1.json").read_text())
+    assert "encoding" not in cav1["ms_per_frame"] and cav1["frames"] >= m["frames"] - 1
+    assert "encoding" in json.loads((out / "timing" / "cav.cav0.json").read_text())["ms_per_frame"]

@@ -22,7 +22,7 @@ The public API is re-exported here: import it from `v2vsim.config`.
 
 from v2vsim.config.checks import check_output_dir, check_plugins
 from v2vsim.config.errors import ConfigError
-from v2vsim.config.load import apply_overrides, load_scenario, parse_override, scenario_from_dict
+from v2vsim.config.load import apply_overrides, load_scenario, neighbours_silent, parse_override, scenario_from_dict
 from v2vsim.config.schema import (
     ENCODERS_BY_MODALITY,
     METHODS,
@@ -87,6 +87,7 @@ __all__ = [
     "describe",
     "find_scenario",
     "load_scenario",
+    "neighbours_silent",
     "parse_override",
     "scenario_from_dict",
     "scenarios_dir",

@@ -129,6 +129,13 @@ def resolve_perceive(sc: Scenario) -> Scenario:
     return dataclasses.replace(sc, perception=dataclasses.replace(sc.perception, methods=methods))
 
 
+def neighbours_silent(sc: Scenario) -> bool:
+    """Whether the other CAVs need not encode nor send a map: a closed-loop point that computes only `none` (control
+    perceive driving, method none or oracle), which reads the ego's own map alone. They still sense (what they see
+    is the ground truth's visible set) and their vehicles drive on; an open-loop run is left as it was."""
+    return sc.control is not None and sc.control.perceive == "driving" and set(sc.perception.methods) <= {"none"}
+
+
 def resolve_auth(sc: Scenario) -> Scenario:
     """comm.auth.identity auto -> per_process, or off when comm.auth.key_file gives a shared key instead: every
     process that loads the scenario resolves it alike, and metrics.json and recordings hold what ran."""
