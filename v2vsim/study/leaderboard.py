@@ -152,7 +152,25 @@ def _cell(iv: Interval | None, signed: bool = False) -> str:
     return f"{mean} [{iv.lo:+.3f}, {iv.hi:+.3f}]{star}" if signed else f"{mean} [{iv.lo:.3f}, {iv.hi:.3f}]"
 
 
-def leaderboard_md(bs: Sequence[Board], meta: dict[str, Any]) -> str:
+def config_table(eps: dict[Episode, dict[str, dict[str, float | None]]], methods: Sequence[str]) -> list[str]:
+    """Per configuration of a family: each method's success and collision rates over its seeds (success /
+    collision), the grid a calibration reads (docs/benchmark.md "Calibration")."""
+    present = [m for m in methods if any(m in runs for runs in eps.values())]
+    configs = sorted({e.config for e in eps})
+    lines = ["| configuration | seeds | " + " | ".join(present) + " |", "|---|---|" + "---|" * len(present)]
+    for c in configs:
+        mine = {e: runs for e, runs in eps.items() if e.config == c}
+        cells = []
+        for m in present:
+            s = [v for runs in mine.values() if (v := (runs.get(m) or {}).get("success")) is not None]
+            k = [v for runs in mine.values() if (v := (runs.get(m) or {}).get("collision")) is not None]
+            cells.append(f"{np.mean(s):.2f} / {np.mean(k):.2f}" if s and k else "-")
+        lines.append(f"| {c} | {len(mine)} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def leaderboard_md(bs: Sequence[Board], meta: dict[str, Any],
+                   per_family: dict[str, dict[Episode, dict[str, dict[str, float | None]]]] | None = None) -> str:
     lines = ["# v2vsim closed-loop benchmark: leaderboard", "",
              f"Catalogue `{meta['catalogue']}`, profile `{meta['profile']}`, {meta['split']} seeds "
              f"{meta['seeds']}; methods ranked by mean driving score (overall). An episode is one (family, "
@@ -171,6 +189,9 @@ def leaderboard_md(bs: Sequence[Board], meta: dict[str, Any]) -> str:
                          + " | ".join(_cell(v[k].diff, True) if k in v else "-"
                                       for k in ("driving_score", "success", "collision")) + " |")
         lines.append("")
+        if per_family and b.scope in per_family:
+            lines += ["Per configuration, success / collision rate over the seeds:", "",
+                      *config_table(per_family[b.scope], list(b.alone)), ""]
         if b.scope == ALL:
             lines += ["### Every pair (driving score, a - b)", "",
                       "| a | b | n | a - b | separated | episodes needed (80 % power) |", "|---|---|---|---|---|---|"]
@@ -267,7 +288,7 @@ def write_leaderboard(out: Path, per_family: dict[str, dict[Episode, dict[str, d
                       methods: Sequence[str], meta: dict[str, Any], boot: int = DEFAULT_B) -> list[Path]:
     bs = boards(per_family, methods, boot)
     paths = [out / "leaderboard.md", out / "leaderboard.csv", out / "leaderboard.json"]
-    paths[0].write_text(leaderboard_md(bs, meta))
+    paths[0].write_text(leaderboard_md(bs, meta, per_family))
     write_csv(paths[1], bs)
     paths[2].write_text(json.dumps(to_json(bs, meta), indent=1))
     return paths + plot(out, bs)

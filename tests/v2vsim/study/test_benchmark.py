@@ -177,6 +177,9 @@ def test_fake_benchmark_resumes_after_ctrl_c_and_writes_the_leaderboard(tmp_path
             if ln.startswith("| ") and not ln.startswith("| method")]
     assert rank == ["oracle", "cobevt", "none"]
     assert "| cobevt | none | 6 |" in md
+    # the calibration's view: per configuration, success / collision rate of each method over the seeds
+    assert "| arrival_offset_s=[0, 0] | 3 | 1.00 / 0.00 | 0.00 / 1.00 | 0.67 / 0.33 |" in md
+    assert "| arrival_offset_s=[2, 2] | 3 | 1.00 / 0.00 | 0.67 / 0.33 | 1.00 / 0.00 |" in md
     csv_head = (out / "leaderboard.csv").read_text().splitlines()[0]
     assert csv_head.startswith("scope,method,episodes,driving_score,driving_score_lo,driving_score_hi,")
     for png in ("leaderboard_score.png", "leaderboard_families.png"):

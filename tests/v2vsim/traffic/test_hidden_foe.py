@@ -163,3 +163,16 @@ def test_sight_blocked() -> None:
     assert sight_blocked((-1.0, 1.0), (3.0, 1.0), box)
     assert not sight_blocked((-1.0, 3.0), (3.0, 3.0), box)
     assert not sight_blocked((-1.0, 1.0), (3.0, 1.0), ())
+
+
+@pytest.mark.parametrize("speed", [8.0, 16.0])
+def test_speed_mps_sets_the_foes_free_flow_speed_below_and_above_the_lanes_limit(speed: float) -> None:
+    """A benchmark grid's second factor (docs/benchmark.md): the foe drives at speed_mps, not the 13.89 m/s limit,
+    and its insertion is timed for that speed."""
+    sc = _scenario("seed=1", f"traffic.hidden_foe.speed_mps={speed}", "traffic.hidden_foe.arrival_offset_s=[2, 2]")
+    states, tb, _ = _run(sc, 20)
+    plan = tb.hidden_foe
+    assert plan is not None and plan.speed == pytest.approx(speed)
+    assert plan.arrival_s == pytest.approx(plan.ego_arrival_s + 2.0, abs=1.0)
+    speeds = [s.actor(FOE_ID).speed for s in states[5:] if s.actor(FOE_ID) is not None]
+    assert speeds and all(abs(v - speed) < 0.3 for v in speeds), speeds
