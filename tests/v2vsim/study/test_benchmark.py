@@ -213,7 +213,7 @@ def test_benchmark_options_are_checked_before_anything_is_written(tmp_path: Path
                                                                  capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "b"
     assert main(["benchmark", "--profile", "nope", "--out", str(out)]) == 2
-    assert "--profile nope: allowed: quick, full" in capsys.readouterr().err
+    assert "--profile nope: allowed: quick, leaderboard, full" in capsys.readouterr().err
     assert main(["benchmark", "--methods", "oracle,foo", "--out", str(out)]) == 2
     assert "--methods: 'foo' is not among the catalogue's methods" in capsys.readouterr().err
     assert main(["benchmark", "--families", "nope", "--out", str(out)]) == 2
