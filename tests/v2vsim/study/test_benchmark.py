@@ -221,3 +221,36 @@ def test_benchmark_options_are_checked_before_anything_is_written(tmp_path: Path
     assert main(["benchmark", "--seeds", "999", "--out", str(out)]) == 2
     assert "--seeds 999: the catalogue's heldout split has" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_the_benchmark_runs_on_a_local_dask_cluster(tmp_path: Path) -> None:
+    """Two closed-loop runs (oracle and none, one configuration, one seed, 3 frames) as Dask tasks on a loopback
+    LocalCluster; their files come back into the family's sweep and the leaderboard is written from them."""
+    import subprocess
+    import sys
+
+    distributed = pytest.importorskip("distributed")
+    cat = _catalogue(tmp_path, profiles={"quick": {"seeds": 1, "levels": [1], "methods": ["oracle", "none"]}})
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=True, host="127.0.0.1",
+                                  dashboard_address=None, protocol="tcp") as cluster:
+        out = tmp_path / "bench"
+        r = subprocess.run([sys.executable, "-m", "v2vsim.cli", "benchmark", "--catalogue", str(cat), "--set",
+                            "duration_s=0.3", "--set", "cavs.count=2", "--bootstrap", "200", "--engine", "dask",
+                            "--scheduler", cluster.scheduler_address, "--out", str(out)], capture_output=True,
+                           text=True, cwd=REPO, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "2 at a time on the Dask cluster at tcp://127.0.0.1:" in r.stderr
+    fam = out / "families" / "pullout"
+    runs = sorted(p.parent.parent.name for p in fam.glob("runs/*/seed0/metrics.json"))
+    assert len(runs) == 2 and all("arrival_offset_s=-1-1-" in p for p in runs)  # the middle offset, [1, 1]
+    for p in fam.glob("runs/*/seed0/metrics.json"):  # (the sweep's Dask engine: v2vsim/study/cluster.py)
+        m = json.loads(p.read_text())
+        assert m["status"] == "complete" and m["frames"] == 3 and m["driving"]["method"] in ("oracle", "none")
+        assert list(m["methods"]) == ["none"]  # control.perceive driving: the one map it drives on
+        assert (p.parent / "report.md").stat().st_size > 0 and (p.parent / "sweep-run.log").stat().st_size > 0
+    assert [x["method"] for x in json.loads((fam / "sweep.json").read_text())["rows"]] == ["none", "none"]
+    assert (fam / "sweep_driving_control.method.png").stat().st_size > 0
+    doc = json.loads((out / "leaderboard.json").read_text())
+    overall = next(b for b in doc["boards"] if b["scope"] == "overall")
+    assert overall["episodes"] == 1 and set(overall["methods"]) == {"oracle", "none"}
+    assert (out / "leaderboard.md").read_text().startswith("# v2vsim closed-loop benchmark")

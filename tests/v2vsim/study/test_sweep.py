@@ -633,32 +633,6 @@ def test_real_sweep_writes_the_contract_csv_and_plots_and_replays_bit_for_bit(tm
         {k: v for k, v in x.items() if k not in timing} for x in rows[4:6]]
 
 
-def test_the_dask_engine_runs_a_sweep_on_a_local_cluster_with_the_same_outputs(tmp_path: Path) -> None:
-    """A loopback LocalCluster started here; each run is one task whose files come back into DIR/runs."""
-    import subprocess
-
-    distributed = pytest.importorskip("distributed")
-    with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=True, host="127.0.0.1",
-                                  dashboard_address=None, protocol="tcp") as cluster:
-        assert cluster.scheduler_address.startswith("tcp://127.0.0.1:")
-        out = tmp_path / "sweep"
-        r = subprocess.run([sys.executable, "-m", "v2vsim.cli", "sweep", str(SCENARIO), "--grid",
-                            "comm.medium=per_link,shared", "--seeds", "0-0", "--frames", "3", "--set", "cavs.count=2",
-                            "--methods", "none,cobevt", "--bootstrap", "200", "--engine", "dask", "--scheduler",
-                            cluster.scheduler_address, "--out", str(out)], capture_output=True, text=True, cwd=REPO,
-                           timeout=300)
-    assert r.returncode == 0, r.stderr
-    assert "2 at a time on the Dask cluster at tcp://127.0.0.1:" in r.stderr  # --jobs = the worker's threads
-    rows = _csv(out / "sweep.csv")
-    assert [(x["comm.medium"], x["method"]) for x in rows] == [
-        ("per_link", "none"), ("per_link", "cobevt"), ("shared", "none"), ("shared", "cobevt")]
-    run = out / "runs" / "comm.medium=shared" / "seed0"
-    m = json.loads((run / "metrics.json").read_text())
-    assert m["status"] == "complete" and m["frames"] == 3 and "cbr" in m["comm"]
-    assert (run / "report.md").stat().st_size > 0 and (run / "sweep-run.log").stat().st_size > 0
-    assert (out / "sweep_comm.medium_iou_vehicle.png").stat().st_size > 0
-
-
 def test_dask_engine_options_are_checked(tmp_path: Path, capsys: pytest.CaptureFixture[str],
                                         monkeypatch: pytest.MonkeyPatch) -> None:
     from v2vsim.study import cluster
