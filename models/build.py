@@ -19,10 +19,10 @@ def build_encoder(name: str, preset: str, bev_size_m: float = 100.0, cells: int 
                   image_backbone: str | None = None) -> nn.Module:
     """Encoder `name` ("pointpillars" | "sinbevt" | "lara") of `preset` -> [B, C, F, F] over bev_size_m.
 
-    `cells`: the LiDAR fusion grid F (default the preset's; a zoo records its own, models.zoo.zoo_cells).
+    `cells`: the LiDAR fusion grid F (default the preset's; a zoo records its own, models.zoo.Zoo.cells).
     The camera encoders' grid is fixed by their architecture (SinBEVT's output, Table A2): for them
     `cells` must be None or their own. `image_backbone`: a camera encoder's image backbone
-    (models.image_backbone; default the preset's; a zoo records its own, models.zoo.zoo_image_backbone)."""
+    (models.image_backbone; default the preset's; a zoo records its own, models.zoo.Zoo.image_backbone)."""
     from models.presets import get_preset
 
     check_name("encoder", name, ENCODERS)

@@ -152,9 +152,9 @@ def run(sc: Scenario, out: Path, frames: int | None = None, remote_cavs: tuple[s
         types = fleet_types(sc, cavs)
         print("v2vsim: fleet: " + ", ".join(f"{c} {t.label}" for c, t in types.items()), file=sys.stderr)
     z = zoo_for(sc)
-    untrained = [m for m, f in method_checkpoints(sc, runnable).items() if f is None] if z is not None else []
+    untrained = [m for m, f in method_checkpoints(sc, runnable, z=z).items() if f is None] if z is not None else []
     if untrained:  # (the whole run untrained, weights none or no zoo: the report's first lines say so)
-        print(f"v2vsim: note: {', '.join(untrained)}: no checkpoint in the zoo at {z[0]} (perception.weights: "
+        print(f"v2vsim: note: {', '.join(untrained)}: no checkpoint in the zoo at {z.root} (perception.weights: "
               f"{sc.perception.weights}): run{'s' if len(untrained) == 1 else ''} untrained, with seeded random "
               "weights; report.md and metrics.json (checkpoints: null) say so", file=sys.stderr)
     # comm.auth.identity per_process: the runner is the run's authority (v2vsim/comm/identity.py)

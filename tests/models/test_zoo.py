@@ -30,13 +30,13 @@ SHIPPED = {
 @pytest.mark.parametrize("encoder", list(SHIPPED))
 def test_every_shipped_checkpoint_matches_its_sha256_and_loads(encoder: str) -> None:
     methods, scenario, overrides = SHIPPED[encoder]
-    entry = zoo.zoo_entry(encoder, "tiny")
+    entry, z = zoo.zoo_entry(encoder, "tiny"), zoo.find(encoder, "tiny")
     assert entry is not None, f"models/weights/manifest.json ships no {encoder}_tiny zoo"
     assert set(entry["methods"]) == methods and entry["encoder"] in entry["files"]
     for name, info in entry["files"].items():
         path = zoo.WEIGHTS_DIR / f"{encoder}_tiny" / name
         assert zoo.sha256(path) == info["sha256"], name
-        assert zoo.load_checkpoint(path, entry), name
+        assert z.files[name].load(), name
         assert info["command"].startswith("v2vsim train") and info["validation"]
     if encoder == "pointpillars":  # the 64 x 64 LiDAR zoo with the compressors the docs list (8 on the wire)
         assert entry["cells"] == 64 and entry["wire_ratio"] == 8
@@ -104,8 +104,7 @@ def test_run_with_a_corrupted_checkpoint_exits_2(tmp_path) -> None:
 
 def test_a_camera_checkpoint_names_the_camera_rebuild_command() -> None:
     for encoder, whole in (("sinbevt", "make zoo-camera"), ("lara", "make zoo-camera"), ("pointpillars", "make zoo ")):
-        entry = zoo.zoo_entry(encoder, "tiny")
-        cmd = zoo.rebuild_command(zoo.WEIGHTS_DIR / f"{encoder}_tiny" / "cobevt.pt", entry)
+        cmd = zoo.find(encoder, "tiny").files["cobevt.pt"].rebuild_command
         assert cmd.startswith(whole) and "--stage cobevt" in cmd, cmd
         assert ("--encoder" in cmd) == (encoder != "pointpillars"), cmd
 

@@ -116,10 +116,10 @@ def box_to_carla(x: float, y: float, z: float, yaw: float, length: float, width:
             "angle": [0.0, -math.degrees(yaw), 0.0]}
 
 
-def box_from_carla(entry: dict) -> tuple[float, float, float, float, float, float, float]:
+def box_from_carla(vehicle: dict) -> tuple[float, float, float, float, float, float, float]:
     """An OPV2V `vehicles` entry -> v2vsim (x, y, z, yaw, length, width, height) in the world: the box centre is
     `location` + `center` (OpenCOOD adds them in world axes), z its bottom (centre z - half height)."""
-    loc, ctr, ext, ang = (entry[k] for k in ("location", "center", "extent", "angle"))
+    loc, ctr, ext, ang = (vehicle[k] for k in ("location", "center", "extent", "angle"))
     cx, cy, cz = (float(loc[i]) + float(ctr[i]) for i in range(3))
     hl, hw, hh = (float(v) for v in ext)
     return cx, -cy, cz - hh, -math.radians(float(ang[1])), 2 * hl, 2 * hw, 2 * hh

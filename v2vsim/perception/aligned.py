@@ -13,7 +13,7 @@ from models.aligner import build_aligned_encoder as build_aligned
 from models.build import build_encoder
 from models.presets import get_preset
 from v2vsim.config import ConfigError, Scenario
-from v2vsim.perception.build import _file_sha, _seed, build_agent_encoder, load_part, zoo_for
+from v2vsim.perception.build import _seed, _sha, build_agent_encoder, load_part, verified, zoo_for
 from v2vsim.perception.fleet import agent_type, base_type, is_mixed
 
 
@@ -25,7 +25,7 @@ def feature_space(sc: Scenario) -> str:
     z = zoo_for(sc)
     if z is None:
         return f"{name}:random-seed{sc.seed}"
-    return f"{name}:{(_file_sha(z[1], z[1].get('encoder')) or 'none')[:12]}"
+    return f"{name}:{(_sha(z.encoder_file) or 'none')[:12]}"
 
 
 def space_label(sc: Scenario, cav: str) -> str:
@@ -48,32 +48,26 @@ def build_aligned_encoder(sc: Scenario, encoder: str) -> AlignedEncoder:
     z = zoo_for(sc)
     base = zoo.zoo_name(sc.perception.encoder, sc.perception.preset)
     train = (f"v2vsim train --data CAMERA_DATA --stage align --encoder {encoder} --out "
-             f"{zoo.WEIGHTS_DIR if z is None else z[0]} --work WORK (docs/training.md)")
+             f"{zoo.WEIGHTS_DIR if z is None else z.root} --work WORK (docs/training.md)")
     if z is None:
         raise ConfigError(f"{sc.source}: cavs.fleet: {encoder} CAVs need the {base} zoo's aligned {encoder} encoder, "
                           f"and perception.weights is {sc.perception.weights!r} (random weights have no aligned "
                           "encoder); allowed: 'auto' or a zoo folder")
-    root, entry = z
-    name = (entry.get("aligned") or {}).get(encoder)
-    if name is None:
-        raise ConfigError(f"{sc.source}: cavs.fleet: the {base} zoo at {root} has no {encoder} encoder aligned to it; "
-                          f"train one with: {train}")
-    path = root / base / name
-    try:
-        state = zoo.load_checkpoint(path, entry)
-    except zoo.ZooError as e:
-        raise ConfigError(str(e)) from None
-    aligns = entry["files"][name].get("aligns") or {}
-    for file, sha in (aligns.get("base") or {}).items():
-        have = _file_sha(entry, file)
+    aligned = z.aligned.get(encoder)
+    if aligned is None:
+        raise ConfigError(f"{sc.source}: cavs.fleet: the {base} zoo at {z.root} has no {encoder} encoder aligned to "
+                          f"it; train one with: {train}")
+    path = aligned.checkpoint.path
+    state = verified(aligned.checkpoint)
+    for file, sha in aligned.checkpoint.trained_on.items():
+        have = _sha(z.files.get(file))
         if have != sha:
-            raise ConfigError(f"{path}: aligned to {base}/{file} sha256 {sha[:12]}…, but the base zoo at {root} has "
+            raise ConfigError(f"{path}: aligned to {base}/{file} sha256 {sha[:12]}…, but the base zoo at {z.root} has "
                               f"{base}/{file} {'sha256 ' + have[:12] + '…' if have else 'missing'}: a stale pairing; "
                               f"re-align with: {train}")
     _seed(sc, f"aligned:{encoder}")  # every weight is loaded below, as in every process: the same module anyway
     camera = build_encoder(encoder, sc.perception.preset, bev_size_m=sc.bev.size_m,
-                           image_backbone=aligns.get("image_backbone"))
-    cells = zoo.zoo_cells(entry, get_preset(sc.perception.preset).cells)
-    module = build_aligned(camera, get_preset(sc.perception.preset).channels, cells, aligns.get("blocks", 2))
+                           image_backbone=aligned.image_backbone)
+    module = build_aligned(camera, get_preset(sc.perception.preset).channels, z.cells, aligned.blocks)
     load_part(module, state, "encoder.", path, f"the aligned {encoder} encoder", f"re-align with: {train}")
     return module.eval()

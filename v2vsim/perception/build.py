@@ -4,12 +4,13 @@ CooperativePerception per fusion method, built by name from the scenario's `perc
 Weights: `perception.weights: auto` loads the zoo's checkpoints (models.zoo: models/weights/
 <encoder>_<preset>/, verified against manifest.json); where none ship, every process builds the same
 randomly initialised models from the scenario seed (so CAV encoders and the ego agree), and the
-report says the weights are untrained.
+report says the weights are untrained. Each build function resolves the scenario's zoo once (zoo_for: a
+models.zoo.Zoo, or None for random weights) and works from that object; the helpers below take it.
 
 A fusion plugin (models.registry) loads its checkpoint like a built-in, from the scenario's zoo (`perception.weights:
 PATH`, a folder `v2vsim train --stage NAME --out PATH` wrote it into). Where that zoo has none and the plugin ships
 a zoo of its own (its entry point object's `weights` attribute: a folder with a manifest.json), the checkpoint comes
-from there if it was trained on this zoo's encoder and wire (plugin_zoo: the manifests' sha256 of the encoder and
+from there if it was trained on this zoo's encoder and wire (_plugin_zoo: the manifests' sha256 of the encoder and
 of the wire's compressor must match); else the method runs untrained, as every method without a checkpoint does,
 and the report and metrics.json say so.
 """
@@ -29,15 +30,18 @@ from models.compression import ChannelCompressor
 from models.extrapolation import FeatureExtrapolation
 from models.presets import get_preset
 from models.registry import MODALITY, is_intermediate, is_plugin, plugin_weights
+from models.zoo import Checkpoint, Zoo
 from v2vsim.config import ConfigError, Scenario
 from v2vsim.perception.device import model_device, to_host
 from v2vsim.perception.fleet import agent_type
 from v2vsim.sensors.sensing import ego_ids
 from v2vsim.traffic.base import cav_id
 
+Loaded = tuple[Checkpoint, dict]  # a verified checkpoint and its state_dict
 
-def zoo_for(sc: Scenario) -> tuple[Path, dict] | None:
-    """(zoo root, manifest entry) of the checkpoints the scenario asks for; None = seeded random weights.
+
+def zoo_for(sc: Scenario) -> Zoo | None:
+    """The zoo of the checkpoints the scenario asks for, parsed; None = seeded random weights.
 
     `perception.weights`: "auto" = models/weights/ when it ships this encoder/preset (else random),
     "none" = random, or a path to a zoo folder with its own manifest.json (as `v2vsim train --out` writes).
@@ -57,174 +61,170 @@ def zoo_for(sc: Scenario) -> tuple[Path, dict] | None:
             raise ConfigError(f"{sc.source}: perception.weights: no zoo manifest at {root / 'manifest.json'}{how}; "
                               "allowed: 'auto', 'none' or a folder written by `v2vsim train --out`")
     try:
-        entry = zoo.zoo_entry(sc.perception.encoder, sc.perception.preset, root)
+        z = zoo.find(sc.perception.encoder, sc.perception.preset, root)
     except zoo.ZooError as e:
         raise ConfigError(str(e)) from None
-    if entry is None:
-        if spec != "auto":
-            raise ConfigError(f"{sc.source}: perception.weights: {root} has no "
-                              f"{zoo.zoo_name(sc.perception.encoder, sc.perception.preset)} checkpoints")
-        return None
-    return root, entry
+    if z is None and spec != "auto":
+        raise ConfigError(f"{sc.source}: perception.weights: {root} has no "
+                          f"{zoo.zoo_name(sc.perception.encoder, sc.perception.preset)} checkpoints")
+    return z
 
 
-def method_file(sc: Scenario, root: Path, entry: dict, method: str) -> Path | None:
-    """The checkpoint `method` ("encoder": the CAVs' encoder) loads from the zoo (root, entry). An intermediate
-    method loads the one trained on the scenario's wire ratio: the zoo's own wire is its "methods" file, another
-    ratio (comm.channel_compression) needs a checkpoint trained on that wire ("wire_methods"). Where there is
-    none it is a ConfigError: a fusion model fed another wire's decoded features runs off the distribution it
-    was trained on, and its results would say nothing about the method."""
-    enc, preset = sc.perception.encoder, sc.perception.preset
+def _ratio(sc: Scenario, z: Zoo | None) -> int:
+    """comm.channel_compression, or where it is null the zoo's wire ratio (1 with random weights)."""
+    if sc.comm.channel_compression is not None:
+        return sc.comm.channel_compression
+    return 1 if z is None else z.wire_ratio
+
+
+def _method_file(sc: Scenario, z: Zoo, method: str) -> Checkpoint | None:
+    """The checkpoint `method` ("encoder": the CAVs' encoder) loads from the zoo `z`. An intermediate method loads
+    the one trained on the scenario's wire ratio: the zoo's own wire is its "methods" file, another ratio
+    (comm.channel_compression) needs a checkpoint trained on that wire ("wire_methods"). Where there is none it
+    is a ConfigError: a fusion model fed another wire's decoded features runs off the distribution it was
+    trained on, and its results would say nothing about the method."""
     if method == "encoder" or not is_intermediate(method):
-        return zoo.method_file(entry, method, root, enc, preset)
-    ratio = wire_ratio(sc)
-    path = zoo.wire_method_file(entry, method, ratio, root, enc, preset)
-    if path is None and method in entry["methods"]:
-        have = ", ".join(map(str, zoo.wire_ratios_of(entry, method)))
-        raise ConfigError(f"{sc.source}: comm.channel_compression: {ratio}: the {zoo.zoo_name(enc, preset)} zoo's "
-                          f"{method} was trained on the ratio-{zoo.wire_ratio(entry)} wire and has no checkpoint for "
-                          f"ratio {ratio} (ratios it has: {have}); fed another wire's features it would run off its "
-                          f"training distribution. Train one with: v2vsim train --data DATA --stage {method} "
-                          f"--wire-ratio {ratio} --out {root} --work WORK (docs/training.md), or leave {method} out "
-                          "of perception.methods")
-    return path
+        return z.method(method)
+    ratio = _ratio(sc, z)
+    ckpt = z.method(method, ratio)
+    if ckpt is None and method in z.methods:
+        have = ", ".join(map(str, z.wire_ratios(method)))
+        raise ConfigError(f"{sc.source}: comm.channel_compression: {ratio}: the {z.name} zoo's {method} was trained "
+                          f"on the ratio-{z.wire_ratio} wire and has no checkpoint for ratio {ratio} (ratios it "
+                          f"has: {have}); fed another wire's features it would run off its training distribution. "
+                          f"Train one with: v2vsim train --data DATA --stage {method} --wire-ratio {ratio} --out "
+                          f"{z.root} --work WORK (docs/training.md), or leave {method} out of perception.methods")
+    return ckpt
 
 
-def _file_sha(entry: dict, name: str | None) -> str | None:
-    return None if name is None else (entry["files"].get(name) or {}).get("sha256")
+def _sha(ckpt: Checkpoint | None) -> str | None:
+    return None if ckpt is None else ckpt.sha256
 
 
-def plugin_zoo(sc: Scenario, method: str, z: tuple[Path, dict]) -> tuple[Path, dict] | None:
-    """(root, entry) of the zoo a fusion plugin ships (models.registry.plugin_weights) when it holds `method`'s
-    checkpoint for this encoder/preset and wire, trained on the encoder and wire compressor of the scenario's zoo
-    `z` (the sha256 its manifest records for them equal z's); None when the plugin ships no zoo or none for this
-    encoder/preset. ConfigError when it does but was trained on another encoder or wire: fused from other
-    features its results would say nothing about the method."""
+def _plugin_zoo(sc: Scenario, method: str, z: Zoo) -> Zoo | None:
+    """The zoo a fusion plugin ships (models.registry.plugin_weights) when it holds `method`'s checkpoint for this
+    encoder/preset and wire, trained on the encoder and wire compressor of the scenario's zoo `z` (the sha256 its
+    manifest records for them equal z's); None when the plugin ships no zoo or none for this encoder/preset.
+    ConfigError when it does but was trained on another encoder or wire: fused from other features its results
+    would say nothing about the method."""
     folder = plugin_weights(method)
     if folder is None:
         return None
-    enc, preset = sc.perception.encoder, sc.perception.preset
     try:
-        entry = zoo.zoo_entry(enc, preset, folder)
+        own = zoo.find(z.encoder, z.preset, folder)
     except zoo.ZooError as e:
         raise ConfigError(f"fusion plugin {method!r}: its weights {folder}: {e}") from None
-    ratio = wire_ratio(sc)
-    if entry is None or zoo.wire_method_file(entry, method, ratio, folder, enc, preset) is None:
+    ratio = _ratio(sc, z)
+    if own is None or own.method(method, ratio) is None:
         return None
-    root, mine = z
     why = []
-    if _file_sha(entry, entry.get("encoder")) != _file_sha(mine, mine.get("encoder")):
+    if _sha(own.encoder_file) != _sha(z.encoder_file):
         why.append("its encoder")
-    if zoo.zoo_cells(entry, 0) != zoo.zoo_cells(mine, 0) or zoo.zoo_image_backbone(entry) != zoo.zoo_image_backbone(
-            mine):
+    if own.cells != z.cells or own.image_backbone != z.image_backbone:
         why.append("its grid or image backbone")
-    if ratio > 1 and _file_sha(entry, (entry.get("compressors") or {}).get(str(ratio))) != _file_sha(
-            mine, (mine.get("compressors") or {}).get(str(ratio))):
+    if ratio > 1 and _sha(own.compressors.get(ratio)) != _sha(z.compressors.get(ratio)):
         why.append(f"its ratio-{ratio} wire compressor")
     if why:
         raise ConfigError(f"{sc.source}: perception.methods: fusion plugin {method!r}: the checkpoint it ships "
-                          f"({folder / zoo.zoo_name(enc, preset)}) was trained on another model than the "
-                          f"{zoo.zoo_name(enc, preset)} zoo at {root} ({' and '.join(why)} differ: manifest sha256); "
-                          f"train {method} on this zoo (v2vsim train --data DATA --stage {method} --out COPY_OF_ZOO "
-                          "--work WORK, docs/training.md) and run with perception.weights: COPY_OF_ZOO")
-    return folder, entry
+                          f"({folder / z.name}) was trained on another model than the {z.name} zoo at {z.root} "
+                          f"({' and '.join(why)} differ: manifest sha256); train {method} on this zoo (v2vsim train "
+                          f"--data DATA --stage {method} --out COPY_OF_ZOO --work WORK, docs/training.md) and run "
+                          "with perception.weights: COPY_OF_ZOO")
+    return own
 
 
-def method_zoo(sc: Scenario, method: str) -> tuple[Path, dict] | None:
-    """(root, entry) of the zoo `method`'s checkpoint comes from: the scenario's (zoo_for), or for a fusion plugin
-    that zoo has no checkpoint of, the plugin's own (plugin_zoo) where it ships a fitting one; None: random."""
-    z = zoo_for(sc)
-    if z is None or method == "encoder" or not is_plugin(method) or method_file(sc, z[0], z[1], method) is not None:
-        return z
-    return plugin_zoo(sc, method, z) or z
-
-
-def method_checkpoints(sc: Scenario, methods: tuple[str, ...]) -> dict[str, str | None]:
-    """Checkpoint file each method loads (relative to the zoo root; a plugin's own zoo's file: its absolute path),
-    None where weights are random."""
-    z = zoo_for(sc)
-    out: dict[str, str | None] = {}
+def _checkpoints(sc: Scenario, z: Zoo, methods: tuple[str, ...]) -> dict[str, Checkpoint | None]:
+    """The checkpoint of each method (None: it runs untrained): the scenario's zoo `z`'s, or for a fusion plugin
+    that zoo has no checkpoint of, the one of the plugin's own zoo (_plugin_zoo) where it ships a fitting one."""
+    out = {}
     for m in methods:
-        mz = method_zoo(sc, m)
-        f = None if mz is None else method_file(sc, mz[0], mz[1], m)
-        out[m] = None if f is None else str(f.relative_to(mz[0]) if z is not None and mz[0] == z[0] else f)
+        ckpt = _method_file(sc, z, m)
+        own = None if ckpt is not None or m == "encoder" or not is_plugin(m) else _plugin_zoo(sc, m, z)
+        out[m] = ckpt if own is None else own.method(m, _ratio(sc, z))
     return out
 
 
-def _states(sc: Scenario, methods: tuple[str, ...]) -> dict[str, dict | None]:
-    """Verified state_dict of each method's checkpoint ("encoder": the CAVs' encoder; None: random
-    weights), every file read and hashed once; ConfigError naming the file when one is broken."""
-    if zoo_for(sc) is None:
+def method_checkpoints(sc: Scenario, methods: tuple[str, ...], *, z: Zoo | None = None) -> dict[str, str | None]:
+    """Checkpoint file each method loads (relative to the zoo root; a plugin's own zoo's file: its absolute path),
+    None where weights are random; `z`: the scenario's zoo where the caller already holds it (zoo_for)."""
+    z = zoo_for(sc) if z is None else z
+    if z is None:
         return dict.fromkeys(methods)
-    zoos = {m: method_zoo(sc, m) for m in methods}
-    files = {m: method_file(sc, *zoos[m], m) for m in methods}  # type: ignore[misc]  # a zoo: every method has one
-    loaded: dict[Path, dict] = {}
+    return {m: None if c is None else str(c.path.relative_to(z.root) if c.path.parent.parent == z.root else c.path)
+            for m, c in _checkpoints(sc, z, methods).items()}
+
+
+def verified(ckpt: Checkpoint) -> dict:
+    """The checkpoint's verified state_dict; ConfigError naming the file and its rebuild command otherwise."""
     try:
-        for m, f in files.items():
-            if f is not None and f not in loaded:
-                loaded[f] = zoo.load_checkpoint(f, zoos[m][1])  # type: ignore[index]
+        return ckpt.load()
     except zoo.ZooError as e:
         raise ConfigError(str(e)) from None
-    return {m: None if f is None else loaded[f] for m, f in files.items()}
+
+
+def _states(sc: Scenario, z: Zoo | None, methods: tuple[str, ...]) -> dict[str, Loaded | None]:
+    """The verified checkpoint of each method ("encoder": the CAVs' encoder; None: random weights), every file
+    read and hashed once; ConfigError naming the file when one is broken."""
+    if z is None:
+        return dict.fromkeys(methods)
+    files = _checkpoints(sc, z, methods)
+    states = {p: verified(c) for p, c in {c.path: c for c in files.values() if c is not None}.items()}
+    return {m: None if c is None else (c, states[c.path]) for m, c in files.items()}
 
 
 def _seed(sc: Scenario, what: str) -> None:
     torch.manual_seed(sc.seed * 1_000_003 + zlib.crc32(what.encode()))
 
 
-def _load(module: nn.Module, state: dict | None, prefix: str, sc: Scenario, method: str) -> None:
-    """Load the `prefix` part of `method`'s checkpoint state into `module`; ConfigError naming the file and
-    its rebuild command when it was made for another version of the model (missing, unknown or resized
-    weights)."""
-    if state is None:
+def _load(module: nn.Module, loaded: Loaded | None, prefix: str, method: str) -> None:
+    """Load the `prefix` part of `method`'s checkpoint into `module`; ConfigError naming the file and its rebuild
+    command when it was made for another version of the model (missing, unknown or resized weights)."""
+    if loaded is None:
         return
+    ckpt, state = loaded
     sub = {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}
     if not sub:
         return
     try:
         module.load_state_dict(sub)
     except RuntimeError as e:
-        root, entry = method_zoo(sc, method)  # type: ignore[misc]  # a state was loaded, so there is a zoo
-        path = method_file(sc, root, entry, method)
         reason = " ".join(str(e).split())
-        raise ConfigError(f"{path}: the {method} checkpoint's {prefix.rstrip('.')} weights do not fit this "
-                          f"version of the model ({reason[:300]}); rebuild it with: "
-                          f"{zoo.rebuild_command(path, entry)}") from None
+        raise ConfigError(f"{ckpt.path}: the {method} checkpoint's {prefix.rstrip('.')} weights do not fit this "
+                          f"version of the model ({reason[:300]}); rebuild it with: {ckpt.rebuild_command}") from None
+
+
+def _cells(sc: Scenario, z: Zoo | None) -> int | None:
+    """The LiDAR fusion grid the scenario's models are built at: its zoo's (models.zoo.Zoo.cells), the preset's
+    with random weights; None for a camera encoder (its grid is its own)."""
+    if MODALITY[sc.perception.encoder] != "lidar":
+        return None
+    return get_preset(sc.perception.preset).cells if z is None else z.cells
+
+
+def _image_backbone(sc: Scenario, z: Zoo | None) -> str | None:
+    """A camera encoder's image backbone: its zoo's (models.zoo.Zoo.image_backbone; the first camera zoo's is
+    "resnet"), the preset's (None) with random weights or for a LiDAR encoder."""
+    return None if MODALITY[sc.perception.encoder] != "camera" or z is None else z.image_backbone
 
 
 def fusion_cells(sc: Scenario) -> int | None:
-    """The LiDAR fusion grid the scenario's models are built at: its zoo's (models.zoo.zoo_cells), the
-    preset's with random weights; None for a camera encoder (its grid is its own)."""
-    if MODALITY[sc.perception.encoder] != "lidar":
-        return None
-    z = zoo_for(sc)
-    return zoo.zoo_cells(None if z is None else z[1], get_preset(sc.perception.preset).cells)
-
-
-def image_backbone(sc: Scenario) -> str | None:
-    """A camera encoder's image backbone: its zoo's (models.zoo.zoo_image_backbone; the first camera zoo's
-    is "resnet"), the preset's (None) with random weights or for a LiDAR encoder."""
-    if MODALITY[sc.perception.encoder] != "camera":
-        return None
-    z = zoo_for(sc)
-    return zoo.zoo_image_backbone(None if z is None else z[1])
+    """The LiDAR fusion grid of the scenario's models (_cells)."""
+    return _cells(sc, zoo_for(sc))
 
 
 def wire_ratio(sc: Scenario) -> int:
     """The channel compression ratio r of the feature messages: comm.channel_compression, or where it is
-    null the zoo's wire ratio (models.zoo.wire_ratio; 1 with random weights or a zoo without compressors)."""
-    if sc.comm.channel_compression is not None:
-        return sc.comm.channel_compression
-    z = zoo_for(sc)
-    return zoo.wire_ratio(None if z is None else z[1])
+    null the zoo's wire ratio (models.zoo.Zoo.wire_ratio; 1 with random weights or a zoo without compressors)."""
+    return _ratio(sc, None if sc.comm.channel_compression is not None else zoo_for(sc))
 
 
 def build_agent_encoder(sc: Scenario) -> nn.Module:
     """The encoder every CAV runs; identical in every process for a given scenario."""
+    z = zoo_for(sc)
     _seed(sc, "encoder")
-    enc = build_encoder(sc.perception.encoder, sc.perception.preset, bev_size_m=sc.bev.size_m, cells=fusion_cells(sc),
-                        image_backbone=image_backbone(sc))
-    _load(enc, _states(sc, ("encoder",))["encoder"], "encoder.", sc, "encoder")
+    enc = build_encoder(sc.perception.encoder, sc.perception.preset, bev_size_m=sc.bev.size_m, cells=_cells(sc, z),
+                        image_backbone=_image_backbone(sc, z))
+    _load(enc, _states(sc, z, ("encoder",))["encoder"], "encoder.", "encoder")
     return enc.eval()
 
 
@@ -244,30 +244,25 @@ def build_compressor(sc: Scenario, channels: int) -> ChannelCompressor | None:
     naming the ratio and the command that trains it: behind trained encoders and fusion models a randomly
     initialised compressor would make every intermediate method's result meaningless, silently. Only a run
     whose weights are all random (perception.weights: none; its report says so) builds a seeded random one."""
-    ratio = wire_ratio(sc)
-    if ratio == 1:
+    if sc.comm.channel_compression == 1:  # uncompressed whatever the zoo
         return None
     z = zoo_for(sc)
+    ratio = _ratio(sc, z)
+    if ratio == 1:
+        return None
     if z is None:
         _seed(sc, "compressor")
         return ChannelCompressor(channels, ratio).eval()
-    root, entry = z
-    enc, preset = sc.perception.encoder, sc.perception.preset
-    path = zoo.compressor_file(entry, ratio, root, enc, preset)
-    if path is None:
-        shipped = sorted(int(r) for r in entry.get("compressors") or {})
-        raise ConfigError(f"{sc.source}: comm.channel_compression: {ratio}: the {zoo.zoo_name(enc, preset)} zoo "
-                          f"({root}) has no trained compressor for ratio {ratio}; allowed: "
-                          f"{', '.join(map(str, [1, *shipped]))} (or null: the zoo's wire ratio, "
-                          f"{zoo.wire_ratio(entry)}); train one with: v2vsim train --data DATA --stage compress "
-                          f"--ratios {ratio} --out {root} --work WORK (docs/training.md)")
-    try:
-        state = zoo.load_checkpoint(path, entry)
-    except zoo.ZooError as e:
-        raise ConfigError(str(e)) from None
+    ckpt = z.compressors.get(ratio)
+    if ckpt is None:
+        raise ConfigError(f"{sc.source}: comm.channel_compression: {ratio}: the {z.name} zoo ({z.root}) has no trained "
+                          f"compressor for ratio {ratio}; allowed: {', '.join(map(str, [1, *sorted(z.compressors)]))} "
+                          f"(or null: the zoo's wire ratio, {z.wire_ratio}); train one with: v2vsim train --data DATA "
+                          f"--stage compress --ratios {ratio} --out {z.root} --work WORK (docs/training.md)")
+    state = verified(ckpt)
     comp = ChannelCompressor(channels, ratio)
-    load_part(comp, state, "compressor.", path, f"the ratio-{ratio} compressor",
-              f"rebuild it with: {zoo.rebuild_command(path, entry)}")
+    load_part(comp, state, "compressor.", ckpt.path, f"the ratio-{ratio} compressor",
+              f"rebuild it with: {ckpt.rebuild_command}")
     return comp.eval()
 
 
@@ -300,19 +295,19 @@ def decompress(comp: ChannelCompressor | None, payload: np.ndarray) -> np.ndarra
 
 def build_method_models(sc: Scenario, encoder: nn.Module, methods: tuple[str, ...]) -> dict[str, nn.Module]:
     """One CooperativePerception per method, all sharing `encoder` (every method fuses the same messages)."""
-    states, cells, backbone = _states(sc, methods), fusion_cells(sc), image_backbone(sc)
+    z = zoo_for(sc)
+    states, cells, backbone = _states(sc, z, methods), _cells(sc, z), _image_backbone(sc, z)
     out = {}
     for m in methods:
         _seed(sc, f"method:{m}")
         model = build_cooperative(sc.perception.encoder, m, sc.perception.preset, bev_size_m=sc.bev.size_m,
                                   cells=cells, image_backbone=backbone)
-        state = states[m]
         if m == "early":  # early fusion's encoder runs at the ego on merged clouds: its own weights
-            _load(model.encoder, state, "encoder.", sc, m)
+            _load(model.encoder, states[m], "encoder.", m)
         else:
             model.encoder = encoder
-        _load(model.fusion, state, "fusion.", sc, m)
-        _load(model.heads, state, "heads.", sc, m)
+        _load(model.fusion, states[m], "fusion.", m)
+        _load(model.heads, states[m], "heads.", m)
         model.heads.for_inference()
         out[m] = model.eval()
     return out
@@ -325,26 +320,17 @@ def build_extrapolation(sc: Scenario, method: str = "cobevt") -> FeatureExtrapol
     ConfigError naming the file when it is broken, does not fit, or was trained on another checkpoint of
     `method` than the zoo's current one."""
     z = zoo_for(sc)
-    if z is None:
+    ckpt = None if z is None else z.extrapolation.get(method)
+    if z is None or ckpt is None:
         return None
-    root, entry = z
-    enc, preset = sc.perception.encoder, sc.perception.preset
-    path = zoo.extrapolation_file(entry, method, root, enc, preset)
-    if path is None:
-        return None
-    try:
-        state = zoo.load_checkpoint(path, entry)
-    except zoo.ZooError as e:
-        raise ConfigError(str(e)) from None
-    rebuild = zoo.rebuild_command(path, entry)
-    base = (entry["files"].get(path.name) or {}).get("extrapolates")
-    current = method_file(sc, root, entry, method)  # the one this run's wire ratio loads
-    if base is not None and (current is None
-                             or (entry["files"].get(current.name) or {}).get("sha256") != base["sha256"]):
-        raise ConfigError(f"{path}: trained on top of {base['file']} (sha256 {base['sha256'][:12]}…), not on the "
-                          f"zoo's current {method} checkpoint; rebuild it with: {rebuild}")
+    state = verified(ckpt)
+    current = _sha(_method_file(sc, z, method))  # the one this run's wire ratio loads
+    for file, sha in ckpt.trained_on.items():
+        if current != sha:
+            raise ConfigError(f"{ckpt.path}: trained on top of {file} (sha256 {sha[:12]}…), not on the zoo's current "
+                              f"{method} checkpoint; rebuild it with: {ckpt.rebuild_command}")
     sub = {k[len("extrapolation."):]: v for k, v in state.items() if k.startswith("extrapolation.")}
-    channels = get_preset(preset).channels
+    channels = get_preset(z.preset).channels
     first = sub.get("net.0.weight")  # [H, 2C, 3, 3]
     try:
         if first is None or first.shape[1] != 2 * channels:
@@ -354,6 +340,6 @@ def build_extrapolation(sc: Scenario, method: str = "cobevt") -> FeatureExtrapol
         module.load_state_dict(sub)
     except RuntimeError as e:
         reason = " ".join(str(e).split())
-        raise ConfigError(f"{path}: the {method} extrapolation weights do not fit this version of the model "
-                          f"({reason[:300]}); rebuild it with: {rebuild}") from None
+        raise ConfigError(f"{ckpt.path}: the {method} extrapolation weights do not fit this version of the model "
+                          f"({reason[:300]}); rebuild it with: {ckpt.rebuild_command}") from None
     return module.eval()

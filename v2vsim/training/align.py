@@ -68,30 +68,27 @@ def aligned_file_name(encoder: str) -> str:
     return f"align_{encoder}.pt"
 
 
-def _base_entry(args: TrainArgs) -> dict:
-    entry = zoo.zoo_entry(BASE_ENCODER, args.preset, args.out)
-    if entry is None or not entry.get("encoder"):
+def _base_zoo(args: TrainArgs) -> zoo.Zoo:
+    base = zoo.find(BASE_ENCODER, args.preset, args.out)
+    if base is None or base.encoder_file is None:
         raise DatasetError(f"{args.out / zoo.MANIFEST}: no {zoo.zoo_name(BASE_ENCODER, args.preset)} zoo to align to; "
                            "the align stage joins a camera type to a trained LiDAR base (make zoo)")
-    return entry
+    return base
 
 
-def _base_state(args: TrainArgs, entry: dict, name: str) -> dict:
+def _state(ckpt: zoo.Checkpoint) -> dict:
     try:
-        return zoo.load_checkpoint(args.out / zoo.zoo_name(BASE_ENCODER, args.preset) / name, entry)
+        return ckpt.load()
     except zoo.ZooError as e:
         raise DatasetError(str(e)) from None
 
 
-def base_files(entry: dict, through: tuple[str, ...]) -> dict[str, str]:
+def base_files(base: zoo.Zoo, through: tuple[str, ...]) -> dict[str, str | None]:
     """{file: sha256} of the base checkpoints an aligned encoder is trained against: the encoder (its space),
     the wire's compressor and the methods it is aligned through."""
-    names = [entry["encoder"]]
-    ratio = zoo.wire_ratio(entry)
-    if ratio > 1:
-        names.append(entry["compressors"][str(ratio)])
-    names += [entry["methods"][m] for m in through]
-    return {n: entry["files"][n]["sha256"] for n in dict.fromkeys(names)}
+    files = [base.encoder_file, *([base.compressors[base.wire_ratio]] if base.wire_ratio > 1 else []),
+             *(base.methods[m] for m in through)]
+    return {c.path.name: c.sha256 for c in files if c is not None}
 
 
 def _frozen(m: nn.Module) -> nn.Module:
@@ -104,33 +101,30 @@ def build_align_models(args: TrainArgs, spec: AlignSpec) -> tuple[AlignedEncoder
                                                                      dict]:
     """(the trainable aligned camera encoder, the frozen base method models of spec.through, the frozen LiDAR
     encoder, the start of the camera encoder {"file", "sha256"} or {} from ImageNet)."""
-    base = _base_entry(args)
-    cells = zoo.zoo_cells(base, 0)
+    base = _base_zoo(args)
+    cells = base.cells
     methods = {}
     for m in spec.through:
-        if m not in base["methods"]:
+        if m not in base.methods:
             raise DatasetError(f"{args.out / zoo.MANIFEST}: the base zoo has no {m} checkpoint to align through")
         torch.manual_seed(args.seed)
         model = build_cooperative(BASE_ENCODER, m, args.preset, cells=cells)
-        state = _base_state(args, base, base["methods"][m])
+        state = _state(base.methods[m])
         model.fusion.load_state_dict(_prefixed(state, "fusion."))
         model.heads.load_state_dict(_prefixed(state, "heads."))
         methods[m] = _frozen(model)
     lidar = build_encoder(BASE_ENCODER, args.preset, cells=cells)
-    lidar.load_state_dict(_prefixed(_base_state(args, base, base["encoder"]), "encoder."))
-    cam_entry = zoo.zoo_entry(args.encoder, args.preset, args.out)
-    backbone = args.image_backbone or zoo.zoo_image_backbone(cam_entry) or preset_image_backbone(args.encoder,
-                                                                                                  args.preset)
+    lidar.load_state_dict(_prefixed(_state(base.encoder_file), "encoder."))  # type: ignore[arg-type]  # _base_zoo: not None
+    cam = zoo.find(args.encoder, args.preset, args.out)
+    backbone = (args.image_backbone or (None if cam is None else cam.image_backbone)
+                or preset_image_backbone(args.encoder, args.preset))
     torch.manual_seed(args.seed)
     camera = build_encoder(args.encoder, args.preset, image_backbone=backbone)
     start: dict = {}
-    if cam_entry is not None and cam_entry.get("encoder") and zoo.zoo_image_backbone(cam_entry) == backbone:
-        path = args.out / zoo.zoo_name(args.encoder, args.preset) / cam_entry["encoder"]
-        try:
-            camera.load_state_dict(_prefixed(zoo.load_checkpoint(path, cam_entry), "encoder."))
-        except zoo.ZooError as e:
-            raise DatasetError(str(e)) from None
-        start = {"file": f"{path.parent.name}/{path.name}", "sha256": cam_entry["files"][path.name]["sha256"]}
+    if cam is not None and cam.encoder_file is not None and cam.image_backbone == backbone:
+        path = cam.encoder_file.path
+        camera.load_state_dict(_prefixed(_state(cam.encoder_file), "encoder."))
+        start = {"file": f"{path.parent.name}/{path.name}", "sha256": cam.encoder_file.sha256}
     elif camera.image_backbone.pretrained:
         camera.image_backbone.load_pretrained()
     channels = lidar.out_channels
@@ -221,7 +215,7 @@ def run_align(args: TrainArgs, log=sys.stderr) -> dict:
     check_dataset_has_cameras(args)
     spec = dataclasses.replace(AlignSpec(), **{k: v for k, v in args.overrides if hasattr(AlignSpec, k)})
     aligned, methods, lidar, start = build_align_models(args, spec)
-    base_entry = _base_entry(args)
+    base = _base_zoo(args)
     wire = wire_compressor(dataclasses.replace(args, encoder=BASE_ENCODER))
     aligned, lidar = aligned.to(dev), lidar.to(dev)
     for m in methods.values():
@@ -282,6 +276,7 @@ def run_align(args: TrainArgs, log=sys.stderr) -> dict:
         last_save = time.monotonic()
     wall_total = wall + time.monotonic() - t_seg
     path = args.out / zoo.zoo_name(BASE_ENCODER, args.preset) / aligned_file_name(args.encoder)
+    cam = zoo.find(args.encoder, args.preset, args.out)
     state = {f"encoder.{k}": v for k, v in aligned.state_dict().items()}
     zoo.save_checkpoint(path, state, encoder=args.encoder, preset=args.preset, stage=ALIGN, methods=[],
                         config={"spec": dataclasses.asdict(spec), "seed": args.seed, "bf16": args.bf16})
@@ -296,12 +291,11 @@ def run_align(args: TrainArgs, log=sys.stderr) -> dict:
         "epochs": spec.epochs, "samples_per_epoch": spec.samples_per_epoch, "batch": spec.batch,
         "wall_s": round(wall_total, 1), "device": args.device, "threads": args.threads, "bf16": args.bf16,
         "validation": history[-1]["validation"] if history else None,
-        "aligns": {"encoder": args.encoder, "image_backbone": zoo.zoo_image_backbone(
-                       zoo.zoo_entry(args.encoder, args.preset, args.out)) or args.image_backbone
-                   or preset_image_backbone(args.encoder, args.preset),
+        "aligns": {"encoder": args.encoder, "image_backbone": (None if cam is None else cam.image_backbone)
+                   or args.image_backbone or preset_image_backbone(args.encoder, args.preset),
                    "blocks": spec.blocks, "through": list(spec.through), "distill_weight": spec.distill_weight,
                    "distill_focus": spec.distill_focus,
-                   "base": base_files(base_entry, spec.through), "start": start,
+                   "base": base_files(base, spec.through), "start": start,
                    "trained_parameters": trained, "frozen_base_parameters": frozen},
     }
     zoo.register(path, encoder=BASE_ENCODER, preset=args.preset, methods=[], info=info, root=args.out,

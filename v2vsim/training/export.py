@@ -47,13 +47,11 @@ def export(args: TrainArgs, spec: StageSpec, state: dict, history: list, wall_s:
         "wall_s": round(wall_s, 1), "device": args.device, "threads": args.threads, "bf16": args.bf16,
         "validation": history[-1]["validation"] if history else None,
     }
-    if spec.wire_ratio is not None:  # trained on another wire than the zoo's (zoo.rebuild_command repeats it)
+    if spec.wire_ratio is not None:  # trained on another wire than the zoo's (Checkpoint.rebuild_command repeats it)
         info["wire_ratio"] = spec.wire_ratio
     if extrapolate:  # the checkpoint it was trained on top of (build_extrapolation refuses another one)
-        entry = zoo.zoo_entry(args.encoder, args.preset, args.out)
-        base = zoo.method_file(entry, spec.methods[0], args.out, args.encoder, args.preset)
-        info["extrapolates"] = {"method": spec.methods[0], "file": base.name,
-                                "sha256": entry["files"][base.name]["sha256"]}
+        base = zoo.find(args.encoder, args.preset, args.out).method(spec.methods[0])
+        info["extrapolates"] = {"method": spec.methods[0], "file": base.path.name, "sha256": base.sha256}
     zoo.register(path, encoder=args.encoder, preset=args.preset, methods=[] if extrapolate else list(spec.methods),
                  info=info, root=args.out, provides_encoder=spec.name == "single",
                  extrapolates=tuple(spec.methods) if extrapolate else (), cells=cells,

@@ -52,15 +52,15 @@ def cache_encoder(args: TrainArgs, log) -> tuple[nn.Module, str]:
     be made for an existing zoo (e.g. to train `extrapolate` on top of it)."""
     if stage_file(args, "single").is_file():
         return build_stage_model(args, SPECS["none"]).encoder, str(stage_file(args, "single"))
-    entry = zoo.zoo_entry(args.encoder, args.preset, args.out)
-    path = None if entry is None else zoo.method_file(entry, "encoder", args.out, args.encoder, args.preset)
-    if path is None:  # neither: the usual "train single first" error
+    z = zoo.find(args.encoder, args.preset, args.out)
+    ckpt = None if z is None else z.encoder_file
+    if ckpt is None:  # neither: the usual "train single first" error
         load_stage_state(args, "single")
     encoder = build_training_model(args, "none").encoder
     encoder.load_state_dict(_prefixed(zoo_state(args, "encoder"), "encoder."))
-    print(f"[cache] {stage_file(args, 'single')} does not exist: encoding with the zoo's encoder {path}",
+    print(f"[cache] {stage_file(args, 'single')} does not exist: encoding with the zoo's encoder {ckpt.path}",
           file=log, flush=True)
-    return encoder, str(path)
+    return encoder, str(ckpt.path)
 
 
 def check_cache_grid(cache: FeatureCache, args: TrainArgs) -> None:
@@ -100,7 +100,7 @@ def on_wire(args: TrainArgs, spec: StageSpec) -> StageSpec:
         raise ValueError(f"--wire-ratio {args.wire_ratio}: trains an intermediate fusion method "
                          f"({', '.join(intermediate_methods())}) on another wire; stage {spec.name!r} fuses no "
                          "neighbours' features (the ratio must be >= 1)")
-    entry = zoo.zoo_entry(args.encoder, args.preset, args.out)
-    if args.wire_ratio == zoo.wire_ratio(entry):
+    z = zoo.find(args.encoder, args.preset, args.out)
+    if args.wire_ratio == (1 if z is None else z.wire_ratio):
         return spec
     return dataclasses.replace(spec, wire_ratio=args.wire_ratio)

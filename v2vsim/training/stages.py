@@ -139,8 +139,8 @@ def train_cells(args: TrainArgs) -> int | None:
     preset's; None for a camera encoder."""
     if MODALITY[args.encoder] != "lidar":
         return None
-    entry = zoo.zoo_entry(args.encoder, args.preset, args.out)
-    return args.cells or zoo.zoo_cells(entry, get_preset(args.preset).cells)
+    z = zoo.find(args.encoder, args.preset, args.out)
+    return args.cells or (get_preset(args.preset).cells if z is None else z.cells)
 
 
 def train_image_backbone(args: TrainArgs) -> str | None:
@@ -150,7 +150,8 @@ def train_image_backbone(args: TrainArgs) -> str | None:
         if args.image_backbone is not None:
             raise ValueError(f"--image-backbone {args.image_backbone}: {args.encoder} is a LiDAR encoder")
         return None
-    return (args.image_backbone or zoo.zoo_image_backbone(zoo.zoo_entry(args.encoder, args.preset, args.out))
+    z = zoo.find(args.encoder, args.preset, args.out)
+    return (args.image_backbone or (None if z is None else z.image_backbone)
             or preset_image_backbone(args.encoder, args.preset))
 
 
@@ -163,17 +164,17 @@ def build_training_model(args: TrainArgs, method: str) -> CooperativePerception:
 
 def check_zoo_grid(args: TrainArgs) -> None:
     """Before training: a --cells that differs from the --out zoo's grid would be refused at export."""
-    entry = zoo.zoo_entry(args.encoder, args.preset, args.out)
-    if entry is None or not entry.get("files"):
+    z = zoo.find(args.encoder, args.preset, args.out)
+    if z is None or not z.files:
         return
     if MODALITY[args.encoder] == "camera":
-        have_bb = zoo.zoo_image_backbone(entry)
+        have_bb = z.image_backbone
         if args.image_backbone and args.image_backbone != have_bb:
             name = zoo.zoo_name(args.encoder, args.preset)
             raise DatasetError(f"--image-backbone {args.image_backbone}: the zoo at {args.out} ({name}) was trained "
                                f"with the {have_bb} backbone; train a {args.image_backbone} zoo into another --out")
         return
-    have = zoo.zoo_cells(entry, 0)
+    have = z.cells
     if args.cells and args.cells != have:
         name = zoo.zoo_name(args.encoder, args.preset)
         raise DatasetError(f"--cells {args.cells}: the zoo at {args.out} ({name}) was trained at {have} x {have}; "
@@ -184,16 +185,16 @@ def wire_compressor(args: TrainArgs) -> ChannelCompressor | None:
     """The --out zoo's compressor of its wire ratio (or of --wire-ratio), frozen, through which every stage
     after `compress` reads the neighbours' cached features, as the ego reads them off the wire; None when that
     wire is uncompressed."""
-    entry = zoo.zoo_entry(args.encoder, args.preset, args.out)
-    ratio = args.wire_ratio or zoo.wire_ratio(entry)
+    z = zoo.find(args.encoder, args.preset, args.out)
+    ratio = args.wire_ratio or (1 if z is None else z.wire_ratio)
     if ratio == 1:
         return None
-    path = None if entry is None else zoo.compressor_file(entry, ratio, args.out, args.encoder, args.preset)
-    if path is None:
+    ckpt = None if z is None else z.compressors.get(ratio)
+    if ckpt is None:
         raise DatasetError(f"--wire-ratio {ratio}: the zoo at {args.out} has no ratio-{ratio} compressor; train it "
                            f"first (`v2vsim train --stage compress --ratios {ratio} --out {args.out}`)")
     try:
-        state = zoo.load_checkpoint(path, entry)
+        state = ckpt.load()
     except zoo.ZooError as e:
         raise DatasetError(str(e)) from None
     comp = ChannelCompressor(get_preset(args.preset).channels, ratio)
@@ -221,11 +222,11 @@ def load_stage_state(args: TrainArgs, stage: str) -> dict:
     p = stage_file(args, stage)
     if p.is_file():
         return torch.load(p, map_location="cpu", weights_only=True)["state_dict"]
-    entry = zoo.zoo_entry(args.encoder, args.preset, args.out)
+    z = zoo.find(args.encoder, args.preset, args.out)
     name = "single.pt" if stage == "single" else f"{stage}.pt"
-    if entry is not None and name in entry.get("files", {}):
+    if z is not None and name in z.files:
         try:
-            return zoo.load_checkpoint(args.out / zoo.zoo_name(args.encoder, args.preset) / name, entry)
+            return z.files[name].load()
         except zoo.ZooError as e:
             raise DatasetError(str(e)) from None
     raise DatasetError(f"{p}: stage {stage!r} has not finished; run `v2vsim train --stage {stage}` first")
@@ -233,15 +234,15 @@ def load_stage_state(args: TrainArgs, stage: str) -> dict:
 
 def zoo_state(args: TrainArgs, method: str) -> dict:
     """The verified state_dict of `method`'s checkpoint ("encoder": the CAVs' encoder) in the zoo at --out."""
-    entry = zoo.zoo_entry(args.encoder, args.preset, args.out)
-    path = None if entry is None else zoo.method_file(entry, method, args.out, args.encoder, args.preset)
-    if path is None:
+    z = zoo.find(args.encoder, args.preset, args.out)
+    ckpt = None if z is None else z.method(method)
+    if ckpt is None:
         stage = "single" if method == "encoder" else method
         raise DatasetError(f"{args.out / zoo.MANIFEST}: no {method} checkpoint of "
                            f"{zoo.zoo_name(args.encoder, args.preset)}; train it into this --out first "
                            f"(`v2vsim train --stage {stage} --out {args.out}`)")
     try:
-        return zoo.load_checkpoint(path, entry)
+        return ckpt.load()
     except zoo.ZooError as e:
         raise DatasetError(str(e)) from None
 

@@ -108,10 +108,10 @@ def test_a_fusion_method_trained_on_another_wire_has_its_own_checkpoint_that_run
     assert entry["methods"]["cobevt"] == "cobevt.pt"  # the zoo's wire (8) keeps its file
     assert entry["wire_methods"] == {"16": {"cobevt": "cobevt_r16.pt"}}
     assert entry["files"]["cobevt_r16.pt"]["wire_ratio"] == 16
-    assert "--stage cobevt --wire-ratio 16" in zoo.rebuild_command(tmp / "zoo" / "pointpillars_tiny" / "cobevt_r16.pt",
-                                                                   entry)
+    z = zoo.find("pointpillars", "tiny", tmp / "zoo")
+    assert "--stage cobevt --wire-ratio 16" in z.files["cobevt_r16.pt"].rebuild_command
     assert "[cobevt] features through the zoo's wire compressor, ratio 16" in log
-    assert zoo.wire_ratios_of(entry, "cobevt") == [8, 16] and zoo.wire_ratios_of(entry, "none") == [8]
+    assert z.wire_ratios("cobevt") == [8, 16] and z.wire_ratios("none") == [8]
     weights = f"perception.weights={tmp / 'zoo'}"
     for ratio, name in (("null", "cobevt.pt"), ("8", "cobevt.pt"), ("16", "cobevt_r16.pt")):
         sc = load_scenario("scenarios/intersection.yaml", [weights, f"comm.channel_compression={ratio}",
