@@ -166,8 +166,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("benchmark", help="the closed-loop benchmark: the catalogue's occlusion families x methods x "
                        "configurations x seeds, then leaderboard.md/csv/json and plots (docs/benchmark.md)")
-    p.add_argument("--profile", default="quick", help="the catalogue's profile: quick (about 45 min on 2 cores) or "
-                   "full (default quick)")
+    p.add_argument("--profile", default="quick", help="the catalogue's profile: quick (within 45 min on 2 cores), "
+                   "leaderboard (docs/results.md's) or full (default quick)")
     p.add_argument("--catalogue", default=None, metavar="FILE",
                    help="a catalogue YAML (default: the shipped scenarios/benchmark/catalogue.yaml)")
     p.add_argument("--split", default="heldout", choices=["heldout", "tuning"],
