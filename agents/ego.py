@@ -328,7 +328,7 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
             if not realtime:
                 with timer.stage("wait"):
                     if silent:  # only `none`: its own map, and what every CAV saw
-                        wait_messages(box, bus, k, [c for c in present if c == me], kinds, lost, lost_after)
+                        wait_messages(box, bus, k, [me] if me in present else [], kinds, lost, lost_after)
                         wait_messages(box, bus, k, present, side, lost, lost_after)
                     else:
                         wait_messages(box, bus, k, present, [kd for kd in [*kinds, *side] if kd != "points"], lost,

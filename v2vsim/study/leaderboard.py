@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from v2vsim.study.stats import DEFAULT_B, DEFAULT_RNG_SEED, Interval, interval
+from v2vsim.study.summary import cell
 
 ORACLE, BASELINE = "oracle", "none"
 # measure -> (label, what a run's sweep row holds); efficiency is derived from finished_at_s (below)
@@ -142,16 +143,6 @@ def boards(per_family: dict[str, dict[Episode, dict[str, dict[str, float | None]
     return out + [board(ALL, pooled, methods, boot)]
 
 
-def _cell(iv: Interval | None, signed: bool = False) -> str:
-    if iv is None:
-        return "-"
-    mean = f"{iv.mean:+.3f}" if signed else f"{iv.mean:.3f}"
-    if iv.lo is None or iv.hi is None:
-        return mean
-    star = "*" if signed and iv.excludes_zero else ""
-    return f"{mean} [{iv.lo:+.3f}, {iv.hi:+.3f}]{star}" if signed else f"{mean} [{iv.lo:.3f}, {iv.hi:.3f}]"
-
-
 def config_table(eps: dict[Episode, dict[str, dict[str, float | None]]], methods: Sequence[str]) -> list[str]:
     """Per configuration of a family: each method's success and collision rates over its seeds (success /
     collision), the grid a calibration reads (docs/benchmark.md "Calibration")."""
@@ -184,9 +175,9 @@ def leaderboard_md(bs: Sequence[Board], meta: dict[str, Any],
                   " success - none | collisions - none |", "|---|---|---|---|---|---|---|---|---|"]
         for m in order:
             a, v = b.alone[m], b.versus_none.get(m, {})
-            lines.append(f"| {m} | {_cell(a['driving_score'])} | {_cell(a['success'])} | {_cell(a['collision'])} | "
-                         f"{_cell(a['efficiency'])} | {_cell(a['iou_vehicle'])} | "
-                         + " | ".join(_cell(v[k].diff, True) if k in v else "-"
+            lines.append(f"| {m} | {cell(a['driving_score'])} | {cell(a['success'])} | {cell(a['collision'])} | "
+                         f"{cell(a['efficiency'])} | {cell(a['iou_vehicle'])} | "
+                         + " | ".join(cell(v[k].diff, True) if k in v else "-"
                                       for k in ("driving_score", "success", "collision")) + " |")
         lines.append("")
         if per_family and b.scope in per_family:
@@ -199,7 +190,7 @@ def leaderboard_md(bs: Sequence[Board], meta: dict[str, Any],
                 if p.measure != "driving_score":
                     continue
                 sep = "yes" if p.diff is not None and p.diff.excludes_zero else "no"
-                lines.append(f"| {p.a} | {p.b} | {p.n} | {_cell(p.diff, True)} | {sep} | "
+                lines.append(f"| {p.a} | {p.b} | {p.n} | {cell(p.diff, True)} | {sep} | "
                              f"{'-' if p.needed is None else p.needed} |")
             lines.append("")
     return "\n".join(lines)

@@ -139,7 +139,8 @@ def _num(v: float | None) -> str:
     return "-" if v is None else f"{v:.3f}"
 
 
-def _cell(iv: Interval | None, signed: bool = False) -> str:
+def cell(iv: Interval | None, signed: bool = False) -> str:
+    """A mean with its interval for a markdown table (signed: a difference, starred when its interval excludes 0)."""
     if iv is None:
         return "-"
     mean = f"{iv.mean:+.3f}" if signed else f"{iv.mean:.3f}"
@@ -174,12 +175,12 @@ def _metric_tables(key: str, entries: Sequence[tuple[str, PointStats | None]], c
     lines = [f"### {LABELS[metric]}" + (f", at {caption}" if caption else "") + f" (resampled: {got[0].level})", "",
              f"| {key} | " + " | ".join(methods) + " |", "|---|" + "---|" * len(methods)]
     for label, s in entries:
-        lines.append(f"| {label} | " + " | ".join(_cell(s.methods.get(m)) if s else "-" for m in methods) + " |")
+        lines.append(f"| {label} | " + " | ".join(cell(s.methods.get(m)) if s else "-" for m in methods) + " |")
     prs = pairs(methods)
     if prs:
         lines += ["", f"| {key} | " + " | ".join(f"{a} - {b}" for a, b in prs) + " |", "|---|" + "---|" * len(prs)]
         for label, s in entries:
-            cells = [_cell(s.differences.get(p), signed=True) if s else "-" for p in prs]
+            cells = [cell(s.differences.get(p), signed=True) if s else "-" for p in prs]
             lines.append(f"| {label} | " + " | ".join(cells) + " |")
     return [*lines, ""]
 
@@ -210,7 +211,7 @@ def driving_md(d: DrivingStudy) -> list[str]:
             where = ", ".join(f"{k}={t}" for k, t in zip((a.key for a in d.axes), v.point.texts, strict=True)
                               if k != METHOD_KEY) or "-"
             lines.append(f"| {where} | {v.method} | {_num(pr.mean)} | {_num(pr.twin_mean)} | "
-                         f"{_cell(pr.diff, signed=True)} | {pr.n} |")
+                         f"{cell(pr.diff, signed=True)} | {pr.n} |")
         lines.append("")
     return lines
 
