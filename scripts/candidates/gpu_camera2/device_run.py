@@ -13,7 +13,8 @@ shrinks its samples per epoch to fit (keeping the predicted time of the core sta
 runs only when at least MIN_FRACTION of the recipe fits.
 
 Environment: T0 (epoch seconds of the call's start), HARD (s), OUT, SRC (traffic dataset), WORK (scratch),
-ZOO_SRC (the zoo to continue), N (train seeds per network), POOL (sensing processes), FRAMES ("150,100"), DEVICE,
+ZOO_SRC (the zoo to continue), SINGLE (its single.pt, if elsewhere), N (train seeds per network), POOL (sensing
+processes), FRAMES ("150,100"), DEVICE,
 WORKERS, THREADS, BATCH, EPOCHS, SAMPLES, VAL (validation samples), STAGES (after the cache, in order), CORE,
 BF16_STAGES (stages trained with --bf16; default none), MIN_FRACTION, RATES ("stage=samples/s,..." priors),
 FORCE ("epochs,samples,val": every stage that size, no plan; local tests).
@@ -200,7 +201,8 @@ def main() -> int:
     # the zoo to continue (its manifest and single.pt: load_checkpoint checks the sha256 the manifest records)
     (zoo / ZOO_NAME).mkdir(parents=True)
     shutil.copy(ZOO_SRC / "manifest.json", zoo / "manifest.json")
-    shutil.copy(ZOO_SRC / ZOO_NAME / "single.pt", zoo / ZOO_NAME / "single.pt")
+    # SINGLE: the encoder file itself where ZOO_SRC's single.pt is a symbolic link the device copy may not keep
+    shutil.copy(Path(E.get("SINGLE", ZOO_SRC / ZOO_NAME / "single.pt")), zoo / ZOO_NAME / "single.pt")
     shutil.copytree(SRC, data)
 
     t = el()
