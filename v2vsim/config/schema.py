@@ -82,12 +82,22 @@ class TrafficConfig:
 @dataclass(frozen=True)
 class MeetConfig:
     """What CAV placement aims for (see v2vsim/traffic/sumo.py): at least `neighbours` other CAVs
-    within comm.range_m of the first ego in at least `share` of the frames, counted from frame 0."""
+    within comm.range_m of the first ego in at least `share` of the frames, counted from frame 0 over the first
+    `horizon_s` seconds (null: the whole run)."""
 
     neighbours: int = _f(2, ">= 0 (capped at cavs.count - 1)", _nonneg)
     share: float = _f(0.9, "0..1", _prob)
     trials: int = _f(24, "1..200 (candidate placements simulated ahead; 1 = the first candidate only)",
                      lambda v: 1 <= v <= 200)
+    # why: a closed-loop run's duration is its time limit; the cast (where the CAVs start) must not change when
+    # only the time limit does, so the look-ahead can span the encounter rather than the whole run
+    horizon_s: float | None = _f(None, "> 0 (s) or null (duration_s): the frames the look-ahead scores", _pos)
+
+    def frames(self, duration_frames: int, rate_hz: float) -> int:
+        """The frames placement scores: the run's, or the first horizon_s seconds of them."""
+        if self.horizon_s is None:
+            return duration_frames
+        return max(1, min(duration_frames, round(self.horizon_s * rate_hz)))
 
 
 @dataclass(frozen=True)

@@ -198,8 +198,8 @@ class SumoBackend(BackendBase):
     # -- CAV placement: the look-ahead runs (what to try and what to keep: sumo_placement) -----
 
     def _look_ahead(self, specs: tuple[CavSpec, ...], max_bad: int | None = None) -> tuple[list[int], int, int]:
-        """Run the scenario's duration with `specs`: per frame, the other CAVs within comm range of
-        the reference CAV (0 once it has left); the frames it was present; the distinct arms the
+        """Run the scenario's duration (or cavs.meet.horizon_s) with `specs`: per frame, the other CAVs within
+        comm range of the reference CAV (0 once it has left); the frames it was present; the distinct arms the
         CAVs were inserted on. Stops early (fewer counts) once more than `max_bad` frames fell
         short of the wanted neighbours."""
         sc = self.scenario
@@ -212,7 +212,7 @@ class SumoBackend(BackendBase):
         counts: list[int] = []
         present = bad = 0
         try:
-            for k in range(sc.frames):
+            for k in range(sc.cavs.meet.frames(sc.frames, sc.rate_hz)):
                 if k:
                     self._advance(ls)
                 res = ls.vehicle.getAllSubscriptionResults()

@@ -16,7 +16,7 @@ module (`look_ahead`); only the topology from v2vsim/traffic/sumo_network.py is 
    knows in general: the signal phase at frame 0 (a CAV at red waits for tens of seconds while
    one with green leaves at ~14 m/s), yielding, queues of background traffic, and CAVs that
    cross in opposite directions separating at ~28 m/s. So `reset()` simulates candidate
-   placements ahead over the scenario's duration (same seed, same warm-up: libsumo runs a
+   placements ahead over the scenario's duration or `cavs.meet.horizon_s` (same seed, same warm-up: libsumo runs a
    candidate in ~0.03-0.06 s) and keeps the one where the first ego (cav0 by default) has at
    least `cavs.meet.neighbours` (2) other CAVs within `comm.range_m` (centre distance) in at
    least `cavs.meet.share` (0.9) of the frames from frame 0, and is still in the simulation at
@@ -95,7 +95,7 @@ class Placement:
     share: float  # share of frames with >= `neighbours` other CAVs within comm range of the reference CAV
     neighbours: int  # the count aimed at: min(cavs.meet.neighbours, cavs.count - 1)
     ref_frames: int  # frames (of the look-ahead) the reference CAV was in the simulation
-    frames: int  # frames looked ahead (the scenario's duration)
+    frames: int  # frames looked ahead (the scenario's duration, or cavs.meet.horizon_s)
     arms: int  # distinct approach arms among the CAVs
     histogram: tuple[float, ...]  # share of frames with 0, 1, 2, ... other CAVs in range
 
@@ -191,7 +191,7 @@ def choose_placement(scenario: Scenario, topology: Topology, cav_ids: tuple[str,
     meet = sc.cavs.meet
     if meet.trials == 1:  # the canonical plan, unchecked
         return candidates(sc, topology, cav_ids)[0], None
-    frames = sc.frames
+    frames = meet.frames(sc.frames, sc.rate_hz)
     want = min(meet.neighbours, len(cav_ids) - 1)
     max_bad = math.floor((1.0 - meet.share) * frames + 1e-9)
     max_arms = min(len(cav_ids), len(topology.arms))

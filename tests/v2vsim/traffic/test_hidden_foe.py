@@ -177,3 +177,19 @@ def test_speed_mps_sets_the_foes_free_flow_speed_below_and_above_the_lanes_limit
     assert plan.arrival_s == pytest.approx(plan.ego_arrival_s + 2.0, abs=1.0)
     speeds = [s.actor(FOE_ID).speed for s in states[5:] if s.actor(FOE_ID) is not None]
     assert speeds and all(abs(v - speed) < 0.3 for v in speeds), speeds
+
+
+def test_a_placement_horizon_keeps_the_cast_when_only_the_time_limit_changes() -> None:
+    """cavs.meet.horizon_s: the look-ahead scores the first horizon_s seconds, so a 40 s run places its CAVs as the
+    14 s run does; without it the 40 s look-ahead picks another cast (why the key exists)."""
+    def cast(*overrides: str):
+        with SumoBackend(_scenario("seed=3", *overrides)) as tb:
+            tb.reset()
+            return [(p.id, p.route.approach, p.route.exit, round(p.arrival_s, 3)) for p in tb.cav_plans], tb.placement
+
+    short, placed = cast()
+    held, held_placed = cast("duration_s=40", "cavs.meet.horizon_s=14")
+    assert held == short and held_placed.frames == placed.frames == 140
+    assert cast("duration_s=40")[0] != short
+    with pytest.raises(ConfigError, match="horizon_s"):
+        _scenario("cavs.meet.horizon_s=0")
