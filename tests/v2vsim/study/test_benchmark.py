@@ -15,7 +15,7 @@ from v2vsim.config import ConfigError, load_scenario
 from v2vsim.study import runs as runs_mod
 from v2vsim.study.benchmark import DRIVING_ONLY, BenchmarkArgs, benchmark, family_sweeps
 from v2vsim.study.catalogue import load_catalogue
-from v2vsim.study.leaderboard import Episode, board, episodes_of, needed_episodes
+from v2vsim.study.leaderboard import Episode, board, config_table, episodes_of, needed_episodes
 from v2vsim.study.plan import RunSpec
 
 REPO = Path(__file__).resolve().parents[3]
@@ -185,6 +185,16 @@ def test_fake_benchmark_resumes_after_ctrl_c_and_writes_the_leaderboard(tmp_path
     for png in ("leaderboard_score.png", "leaderboard_families.png"):
         assert (out / png).stat().st_size > 5000
     assert (out / "families" / "pullout" / "sweep.md").is_file()
+
+
+def test_the_configuration_table_orders_grid_values_by_number() -> None:
+    run = {"none": {"success": 1.0, "collision": 0.0}}
+    eps = {Episode("f", f"arrival_offset_s=[{o}, {o}], speed_mps={v}", 0): run
+           for o in ("1", "-0.5", "0") for v in ("11", "8", "14")}
+    rows = [ln.split("|")[1].strip() for ln in config_table(eps, ["none"])[2:]]
+    assert rows[:4] == ["arrival_offset_s=[-0.5, -0.5], speed_mps=8", "arrival_offset_s=[-0.5, -0.5], speed_mps=11",
+                        "arrival_offset_s=[-0.5, -0.5], speed_mps=14", "arrival_offset_s=[0, 0], speed_mps=8"]
+    assert rows[-1] == "arrival_offset_s=[1, 1], speed_mps=14"
 
 
 def test_episodes_pair_methods_by_configuration_and_seed_and_skip_incomplete_runs() -> None:
