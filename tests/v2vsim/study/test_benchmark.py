@@ -38,10 +38,12 @@ def test_the_shipped_catalogue_loads_and_a_profile_thins_each_grid_axis_evenly()
     cat = load_catalogue()
     assert cat.methods[:2] == ("oracle", "none") and len(cat.families) >= 1
     assert not set(cat.seeds["tuning"]) & set(cat.seeds["heldout"])
+    for f in cat.families:
+        assert load_scenario(f.scenario).control is not None, f.name  # `v2vsim run NAME` drives
+        for a in f.grid:
+            for v in a.texts:  # every grid value loads with the family's scenario
+                load_scenario(f.scenario, [f"{a.key}={v}"])
     f = cat.families[0]
-    for a in f.grid:
-        for v in a.texts:  # every grid value loads with the family's scenario
-            load_scenario(f.scenario, [f"{a.key}={v}"])
     from v2vsim.study.grid import Axis
 
     a = Axis("k", ("0", "1", "2", "3", "4"), (0, 1, 2, 3, 4))
