@@ -266,7 +266,8 @@ def plot(out: Path, bs: Sequence[Board]) -> list[Path]:
     fams = [b for b in bs if b.scope != ALL]
     grid = np.array([[b.alone[m]["driving_score"].mean if m in b.alone and b.alone[m]["driving_score"] else np.nan
                       for m in methods] for b in fams])
-    fig, ax = plt.subplots(figsize=(1.5 + 0.8 * len(methods), 1.2 + 0.5 * len(fams)))
+    # at least 2.4 in high: the colour bar's label must fit beside one or two families
+    fig, ax = plt.subplots(figsize=(1.5 + 0.8 * len(methods), max(2.4, 1.2 + 0.5 * len(fams))))
     im = ax.imshow(grid, vmin=0, vmax=1, cmap="RdYlGn", aspect="auto")
     ax.set_xticks(range(len(methods)), methods, rotation=30)
     ax.set_yticks(range(len(fams)), [b.scope for b in fams])
@@ -274,7 +275,7 @@ def plot(out: Path, bs: Sequence[Board]) -> list[Path]:
         for j in range(len(methods)):
             if not np.isnan(grid[i, j]):
                 ax.text(j, i, f"{grid[i, j]:.2f}", ha="center", va="center", fontsize=8)
-    fig.colorbar(im, ax=ax, label="mean driving score")
+    fig.colorbar(im, ax=ax, label="driving score")
     fig.tight_layout()
     paths.append(out / "leaderboard_families.png")
     fig.savefig(paths[-1], dpi=110)
