@@ -14,7 +14,6 @@ from __future__ import annotations
 import csv
 import json
 import math
-import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -144,17 +143,11 @@ def boards(per_family: dict[str, dict[Episode, dict[str, dict[str, float | None]
     return out + [board(ALL, pooled, methods, boot)]
 
 
-def _natural(text: str) -> list[tuple[int, float | str]]:
-    """A sort key that orders the numbers in `text` by value ("speed_mps=8" before "speed_mps=11")."""
-    parts = re.split(r"(-?\d+(?:\.\d+)?)", text)
-    return [(0, float(p)) if i % 2 else (1, p) for i, p in enumerate(parts)]
-
-
 def config_table(eps: dict[Episode, dict[str, dict[str, float | None]]], methods: Sequence[str]) -> list[str]:
     """Per configuration of a family: each method's success and collision rates over its seeds (success /
     collision), the grid a calibration reads (docs/benchmark.md "Calibration")."""
     present = [m for m in methods if any(m in runs for runs in eps.values())]
-    configs = sorted({e.config for e in eps}, key=_natural)
+    configs = list(dict.fromkeys(e.config for e in eps))  # the grid's order, as the sweep's rows come
     lines = ["| configuration | seeds | " + " | ".join(present) + " |", "|---|---|" + "---|" * len(present)]
     for c in configs:
         mine = {e: runs for e, runs in eps.items() if e.config == c}

@@ -189,10 +189,11 @@ def test_fake_benchmark_resumes_after_ctrl_c_and_writes_the_leaderboard(tmp_path
     assert (out / "families" / "pullout" / "sweep.md").is_file()
 
 
-def test_the_configuration_table_orders_grid_values_by_number() -> None:
+def test_the_configuration_table_keeps_the_grids_order() -> None:
+    # episodes as episodes_of reads them: the sweep's rows, in the grid's order (not the strings' order: 11 < 8)
     run = {"none": {"success": 1.0, "collision": 0.0}}
     eps = {Episode("f", f"arrival_offset_s=[{o}, {o}], speed_mps={v}", 0): run
-           for o in ("1", "-0.5", "0") for v in ("11", "8", "14")}
+           for o in ("-0.5", "0", "1") for v in ("8", "11", "14")}
     rows = [ln.split("|")[1].strip() for ln in config_table(eps, ["none"])[2:]]
     assert rows[:4] == ["arrival_offset_s=[-0.5, -0.5], speed_mps=8", "arrival_offset_s=[-0.5, -0.5], speed_mps=11",
                         "arrival_offset_s=[-0.5, -0.5], speed_mps=14", "arrival_offset_s=[0, 0], speed_mps=8"]
