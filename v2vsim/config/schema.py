@@ -65,6 +65,9 @@ class HiddenFoeConfig:
     # its free-flow speed: null = the lane's speed limit; a benchmark grid's second factor (as Coopernaut's)
     speed_mps: float | None = _f(None, "0 < v <= 40 (m/s) or null (the lane's speed limit)",
                                  lambda v: 0 < v <= 40)
+    # true: it drives through a red light (SUMO's junctionModel.jmDriveAfterRedTime), a red-light runner at a
+    # signalised junction where the ego has green (scenarios/red_light_runner.yaml)
+    runs_red: bool = False
 
 
 @dataclass(frozen=True)

@@ -5,7 +5,11 @@ Two terms, each an acceleration; the smaller one wins and `Plan.reason` says whi
       Eqs. 2-3) behind the nearest perceived vehicle in the ego's corridor, or IDM's free-road term without one;
   (b) yielding at the stop line of a junction where the ego has no priority: a gap-acceptance test on every
       perceived vehicle near the junction's conflict zone; when the gap is too short the stop line becomes a
-      standing virtual leader, so IDM brings the ego to rest in front of it.
+      standing virtual leader, so IDM brings the ego to rest in front of it. Where the ego has priority (a green
+      light, the main road) it still gives way to a crossing vehicle that will not: one that reaches its path
+      while the ego would be on it and can no longer stop before the junction (a red-light runner;
+      `find_violator`), with the junction's entry as the virtual leader, unless the ego itself can no longer stop
+      before it (it is then committed and carries on).
 The winner is clamped to the vehicle's limits and integrated over one step (explicit Euler).
 """
 
@@ -16,7 +20,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from v2vsim.control.geometry import in_grown_polygon, polyline_length, project_onto_polyline, ray_to_grown_polygon
+from v2vsim.control.geometry import (
+    in_grown_polygon,
+    point_in_polygon,
+    polyline_length,
+    project_onto_polyline,
+    ray_to_grown_polygon,
+)
 from v2vsim.control.tracking import Track
 from v2vsim.world.geometry import Pose, world_to_body
 
@@ -51,6 +61,11 @@ class PlannerConfig:
     zone_margin_m: float = 2.0  # the conflict zone is grown by this (a vehicle's half length, roughly)
     unknown_speed_mps: float = 13.9  # assumed approach speed of a new track (age 1), whose velocity is unknown
     min_moving_mps: float = 1.0  # slower tracked speeds are estimation noise of a standing vehicle
+    yield_to_violators: bool = True  # with priority, give way to a crossing vehicle that cannot stop (find_violator)
+    violator_margin_s: float = 1.0  # the ego's and a violator's times on the conflict may come this close
+    # a crossing vehicle that would need to brake harder than this to stop before the junction will not stop:
+    # SUMO's cars brake for a red light or a give-way line at up to 4.5 m/s^2; the rest is the tracker's lag
+    violator_decel: float = 6.0
 
 
 @dataclass(frozen=True)
@@ -184,6 +199,82 @@ def time_to_path(t: Track, points: np.ndarray, cfg: PlannerConfig) -> float:
     return best
 
 
+def _crossing_candidates(pose: Pose, length: float, route: RouteAhead, tracks: tuple[Track, ...],
+                         cfg: PlannerConfig) -> list[Track]:
+    """The tracks that may cross the ego's path: not the ego itself (within 1 m of its centre), not traffic behind
+    its front bumper in its own lane (it cannot reach the junction first), not traffic ahead in its own lane going
+    its way (term (a) follows it)."""
+    xy = np.array([[t.x, t.y] for t in tracks]).reshape(-1, 2)
+    body = world_to_body(xy, pose)
+    has_path = len(route.path) >= 2 and polyline_length(route.path) > 0.0
+    if has_path:
+        s, lat, tangent = project_onto_polyline(route.path, xy)
+        path_len = polyline_length(route.path)
+    out = []
+    for i, t in enumerate(tracks):
+        bx, by = float(body[i, 0]), float(body[i, 1])
+        if math.hypot(bx, by) <= _SELF_RADIUS_M:
+            continue
+        if abs(by) <= cfg.corridor_half_width_m + t.width / 2 and bx < length / 2:
+            continue
+        if has_path and _leaves_to_car_following(t, float(s[i]), float(lat[i]), tangent[i], path_len, cfg):
+            continue
+        out.append(t)
+    return out
+
+
+def zone_entry_m(route: RouteAhead) -> float | None:
+    """Distance along the path (from the front bumper) to where it enters the conflict zone (0: the bumper is in
+    it), to CONFLICT_STEP_M; None without a zone or when the path does not enter it."""
+    if route.conflict_zone is None or len(route.path) < 2:
+        return None
+    seg = np.linalg.norm(np.diff(route.path, axis=0), axis=1)
+    s = np.r_[0.0, np.cumsum(seg)]
+    at = np.arange(0.0, s[-1] + 1e-9, CONFLICT_STEP_M)
+    pts = np.stack([np.interp(at, s, route.path[:, 0]), np.interp(at, s, route.path[:, 1])], axis=1)
+    inside = point_in_polygon(route.conflict_zone, pts)
+    return float(at[int(np.argmax(inside))]) if inside.any() else None
+
+
+def find_violator(pose: Pose, speed: float, length: float, route: RouteAhead, tracks: tuple[Track, ...],
+                  cfg: PlannerConfig) -> tuple[Track, float] | None:
+    """With priority, the crossing vehicle that will not give way, with its time to the ego's path, or None.
+
+    A violator is tracked (age > 1: its speed is known) and moving, reaches the ego's path through the junction
+    (time_to_path, constant velocity) at t_f, and can no longer stop before the junction: v^2 / (2 d) >
+    violator_decel, d from its front bumper along its velocity to the conflict zone (0 already in it). It must
+    also meet the ego there: it is on the path during [t_f, t_f + 2 reach / v] (reach = corridor_half_width + its
+    length / 2), the ego during [entry / v_e, (last conflict point + ego length) / v_e] (v_e = max(its speed,
+    min_moving_mps)), and the two come within violator_margin_s. Until a vehicle is that close to the junction it
+    cannot be told from one that will brake for its red light; from then on an ego that sees it can still stop
+    (Coopernaut's red-light-runner scenario); one that cannot see it cannot.
+    """
+    zone = route.conflict_zone
+    points = conflict_points(route, cfg)
+    entry = zone_entry_m(route)
+    if zone is None or entry is None or entry <= 0.0 or not len(points) or not tracks:
+        return None
+    s_last, _, _ = project_onto_polyline(route.path, points[-1:])  # arc length of the last conflict point
+    v_e = max(speed, cfg.min_moving_mps)
+    ego_in, ego_out = entry / v_e, (float(s_last[0]) + length) / v_e
+    best: tuple[Track, float] | None = None
+    for t in _crossing_candidates(pose, length, route, tracks, cfg):
+        v = math.hypot(t.vx, t.vy)
+        if t.age <= 1 or v < cfg.min_moving_mps:
+            continue
+        tt = time_to_path(t, points, cfg)
+        if not math.isfinite(tt):
+            continue
+        to_zone = ray_to_grown_polygon(zone, 0.0, np.array([t.x, t.y]), np.array([t.vx, t.vy])) - t.length / 2
+        if v * v / (2.0 * max(to_zone, 0.1)) <= cfg.violator_decel:
+            continue
+        f_out = tt + 2.0 * (cfg.corridor_half_width_m + t.length / 2) / v
+        if tt <= ego_out + cfg.violator_margin_s and f_out >= ego_in - cfg.violator_margin_s:
+            if best is None or tt < best[1]:
+                best = (t, tt)
+    return best
+
+
 def find_blocker(pose: Pose, length: float, route: RouteAhead, tracks: tuple[Track, ...],
                  cfg: PlannerConfig) -> tuple[Track, float] | None:
     """The foe that makes the gap unacceptable, with its time to the ego's path (the soonest one), or None.
@@ -197,23 +288,9 @@ def find_blocker(pose: Pose, length: float, route: RouteAhead, tracks: tuple[Tra
     zone = route.conflict_zone
     if zone is None or not tracks:
         return None
-    xy = np.array([[t.x, t.y] for t in tracks])
-    body = world_to_body(xy, pose)
-    has_path = len(route.path) >= 2 and polyline_length(route.path) > 0.0
-    if has_path:
-        s, lat, tangent = project_onto_polyline(route.path, xy)
-        path_len = polyline_length(route.path)
     points = conflict_points(route, cfg)
     best: tuple[Track, float] | None = None
-    for i, t in enumerate(tracks):
-        bx, by = float(body[i, 0]), float(body[i, 1])
-        if math.hypot(bx, by) <= _SELF_RADIUS_M:
-            continue
-        in_lane = abs(by) <= cfg.corridor_half_width_m + t.width / 2
-        if in_lane and bx < length / 2:
-            continue
-        if has_path and _leaves_to_car_following(t, float(s[i]), float(lat[i]), tangent[i], path_len, cfg):
-            continue
+    for t in _crossing_candidates(pose, length, route, tracks, cfg):
         tt = time_to_path(t, points, cfg) if len(points) else time_to_zone(t, zone, cfg)
         if tt < cfg.gap_acceptance_s and (best is None or tt < best[1]):
             best = (t, tt)
@@ -250,6 +327,14 @@ def plan(pose: Pose, speed: float, length: float, route: RouteAhead, tracks: tup
             blocker = find_blocker(pose, length, route, tracks, cfg)
             if blocker is not None:
                 terms.append(_Term(idm_acceleration(v, cfg, v0, line_gap, v), "yield", blocker[0]))
+    elif route.conflict_zone is not None and cfg.yield_to_violators:
+        violator = find_violator(pose, v, length, route, tracks, cfg)
+        entry = zone_entry_m(route)
+        # the junction's entry is the standing virtual leader, while the ego can still stop before it: braking
+        # that cannot would leave it standing in the violator's way, so it carries on instead (it is committed)
+        if violator is not None and entry is not None and v * v / (2.0 * cfg.max_decel) <= entry:
+            terms.append(_Term(idm_acceleration(v, cfg, v0, max(entry, _MIN_GAP_FOR_IDM_M), v), "yield",
+                               violator[0]))
     if route.red_m is not None:  # a red (or amber) light: its stop line is a standing leader, whatever the traffic
         terms.append(_Term(idm_acceleration(v, cfg, v0, max(route.red_m, _MIN_GAP_FOR_IDM_M), v), "red_light", None))
     win = min(terms, key=lambda term: term.accel)  # min keeps the first of equal ones: (a) before (b)

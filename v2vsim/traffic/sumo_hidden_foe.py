@@ -32,7 +32,8 @@ What is placed, and how (deterministic per seed; nothing here touches the backgr
    (measured with libsumo 1.28 on the T-junction; the bare key `jmIgnoreJunctionFoeProb` is stored but has no effect,
    only the `junctionModel.` form does). It is a modelling choice: a driver who does not react to a car pulling out.
    `jmIgnoreFoeProb` is not set: it concerns foes that have right of way, which the foe never meets on the priority
-   road.
+   road. `runs_red: true` sets `junctionModel.jmDriveAfterRedTime` to an hour: it drives through its red light as
+   if it were green (a red-light runner; the ego, on the cross street, has green and the priority).
 
 The backend calls `insert_hidden_foe` in every launch, look-ahead runs included, so the CAV placement is chosen in
 the traffic the run will have.
@@ -179,9 +180,11 @@ def foe_arm(net: sumolib.net.Net, topology: Topology, ego: CavPlan, buildings: t
     return max(sides.items(), key=score)
 
 
-def _define_foe_type(ls: ModuleType, base_type: str, attentive: bool, speed_mps: float | None = None) -> None:
+def _define_foe_type(ls: ModuleType, base_type: str, attentive: bool, speed_mps: float | None = None,
+                     runs_red: bool = False) -> None:
     """The foe's vType: the background car without imperfection or speed spread (see module doc, 4); with
-    `speed_mps` its maximum speed, and a speed factor that lets it reach that speed above the lane's limit too."""
+    `speed_mps` its maximum speed, and a speed factor that lets it reach that speed above the lane's limit too;
+    `runs_red`: it drives through any light that has been red for less than an hour, at full speed."""
     ls.vehicletype.copy(base_type, FOE_TYPE)
     ls.vehicletype.setImperfection(FOE_TYPE, 0.0)
     ls.vehicletype.setSpeedDeviation(FOE_TYPE, 0.0)
@@ -190,6 +193,10 @@ def _define_foe_type(ls: ModuleType, base_type: str, attentive: bool, speed_mps:
         ls.vehicletype.setSpeedFactor(FOE_TYPE, 4.0)
     if not attentive:
         ls.vehicletype.setParameter(FOE_TYPE, "junctionModel.jmIgnoreJunctionFoeProb", "1")
+    if runs_red:
+        ls.vehicletype.setParameter(FOE_TYPE, "junctionModel.jmDriveAfterRedTime", "3600")
+        ls.vehicletype.setParameter(FOE_TYPE, "junctionModel.jmIgnoreFoeProb", "1")
+        ls.vehicletype.setParameter(FOE_TYPE, "junctionModel.jmIgnoreFoeSpeed", "100")
 
 
 def _occupants(ls: ModuleType, lane_id: str, to_end: float, route: Route,
@@ -233,7 +240,7 @@ def insert_hidden_foe(ls: ModuleType, net: sumolib.net.Net, topology: Topology, 
         route = _straight(arm)
     except ValueError as e:  # the net has no such arm: a scenario problem, said in one line
         raise ConfigError(f"{scenario.source}: {e}") from None
-    _define_foe_type(ls, base_type, cfg.attentive, cfg.speed_mps)
+    _define_foe_type(ls, base_type, cfg.attentive, cfg.speed_mps, cfg.runs_red)
     ego_shape = _ego_lane_shape(net, ego)
     ego_lane = net.getEdge(ego.edges[0]).getLane(ego.lane)
     ego_arrival = ego.to_stop_line_m / _free_speed(ls, ego_id, ego_lane.getSpeed())

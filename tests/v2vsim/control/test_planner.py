@@ -21,10 +21,13 @@ LINE_X = 22.25  # the stop line: 20 m ahead of the front bumper of an ego at x =
 ZONE = np.array([[LINE_X, -5.0], [LINE_X + 10.0, -5.0], [LINE_X + 10.0, 5.0], [LINE_X, 5.0]])
 
 
-def _route(ego_x: float, speed_limit: float = 13.9, junction: bool = False) -> RouteAhead:
-    """A straight route along +x from the front bumper of an ego at (ego_x, 0) facing east."""
+def _route(ego_x: float, speed_limit: float = 13.9, junction: bool = False, priority: bool = False) -> RouteAhead:
+    """A straight route along +x from the front bumper of an ego at (ego_x, 0) facing east; with `priority` the
+    junction has no stop line for it (a green light, the main road)."""
     front = ego_x + EGO_LEN / 2
     path = np.array([[front, 0.0], [front + 300.0, 0.0]])
+    if junction and priority:
+        return RouteAhead(path, speed_limit, None, ZONE if front < LINE_X + 12.0 else None)
     if junction and front < LINE_X:
         return RouteAhead(path, speed_limit, LINE_X - front, ZONE)
     return RouteAhead(path, speed_limit, None, None)
@@ -39,23 +42,37 @@ class _Step:
 
 
 def _drive(ego_v: float, others: list[tuple[float, float, float, float, float]], seconds: float,
-           cfg: PlannerConfig, junction: bool = False) -> list[_Step]:
+           cfg: PlannerConfig, junction: bool = False, priority: bool = False,
+           stop_y: float | None = None) -> list[_Step]:
     """Closed loop: truth -> obstacles -> `track` -> `plan` -> the ego moves at the commanded speed.
-    `others` are (x, y, yaw, vx, vy) moving at constant velocity."""
+    `others` are (x, y, yaw, vx, vy) moving at constant velocity; with `stop_y` they brake at 4.5 m/s^2 (a SUMO
+    car's deceleration) so as to stand with their centre at y = stop_y."""
     ego_x, v = 0.0, ego_v
     tracks: tuple[Track, ...] = ()
     nid = 0
     out = []
     for k in range(round(seconds / DT)):
         t = k * DT
-        now = tuple((x + vx * t, y + vy * t) for x, y, _, vx, vy in others)
+        now = tuple((x + vx * t, y + vy * t) if stop_y is None else _braking(x, y, vy, stop_y, t)
+                    for x, y, _, vx, vy in others)
         obs = tuple(Obstacle(px, py, o[2], 4.5, 1.8) for (px, py), o in zip(now, others, strict=True))
         tracks, nid = track(tracks, obs, DT, nid)
-        p = plan(Pose(ego_x, 0.0, 0.0, 0.0), v, EGO_LEN, _route(ego_x, junction=junction), tracks, cfg, DT)
+        route = _route(ego_x, junction=junction, priority=priority)
+        p = plan(Pose(ego_x, 0.0, 0.0, 0.0), v, EGO_LEN, route, tracks, cfg, DT)
         out.append(_Step(ego_x, v, p, now))
         ego_x += p.speed * DT
         v = p.speed
     return out
+
+
+def _braking(x: float, y: float, vy: float, stop_y: float, t: float) -> tuple[float, float]:
+    """Northbound at vy until it must brake at 4.5 m/s^2 to stand at stop_y, then braking to it."""
+    brake_at = stop_y - vy * vy / (2 * 4.5) - y  # distance driven at constant speed
+    t_brake = brake_at / vy
+    if t <= t_brake:
+        return x, y + vy * t
+    tau = min(t - t_brake, vy / 4.5)
+    return x, y + brake_at + vy * tau - 4.5 * tau * tau / 2
 
 
 _REACH = PlannerConfig().corridor_half_width_m + 4.5 / 2  # a foe this close to the ego's path is on it
@@ -232,3 +249,35 @@ def test_a_vehicle_waiting_in_the_junction_blocks_only_on_the_ego_s_path() -> No
     assert all(s.plan.reason != "yield" for s in _drive(8.0, [aside], 3.0, cfg, junction=True))
     blocked = _drive(8.0, [across], 6.0, cfg, junction=True)
     assert blocked[-1].plan.reason == "yield" and blocked[-1].ego_x + EGO_LEN / 2 < LINE_X
+
+
+def test_with_priority_it_gives_way_to_a_crossing_vehicle_that_cannot_stop() -> None:
+    """A green light (no stop line) and a red-light runner: 11 m/s northbound, timed to be on the ego's path when
+    the ego would be (both there ~2.5 s in). The ego brakes for the junction's entry as soon as the runner can no
+    longer stop before the junction (v^2 / 2d > 6 m/s^2: its front 10 m from the zone), is never on the runner's
+    path while the runner is, and goes after it. Without the rule (yield_to_violators false) it drives on into the
+    runner's path."""
+    runner = (LINE_X + 5.0, -26.0, math.pi / 2, 0.0, 11.0)
+    clear_t = (_REACH - runner[1]) / 11.0
+    steps = _drive(11.0, [runner], 8.0, PlannerConfig(), junction=True, priority=True)
+    assert steps[0].plan.reason == "free"  # 18.75 m from the zone: it could still stop at 3.2 m/s^2
+    assert any(s.plan.reason == "yield" and s.plan.obstacle is not None for s in steps)
+    on_path = [s for k, s in enumerate(steps) if abs(s.others[0][1]) <= _REACH]
+    assert on_path and all(s.ego_x + EGO_LEN / 2 < LINE_X + 5.0 - 1.0 for s in on_path)  # short of its lane
+    assert steps[-1].ego_x + EGO_LEN / 2 > LINE_X + 10.0 and clear_t < 8.0  # and went on after it
+    careless = _drive(11.0, [runner], 8.0, PlannerConfig(yield_to_violators=False), junction=True, priority=True)
+    assert all(s.plan.reason != "yield" for s in careless)
+    # footprints (4.5 x 1.8 m, crossing at right angles) overlap: |dx| and |dy| both within 2.25 + 0.9 m
+    assert any(abs(s.others[0][1]) <= 3.15 and abs(s.ego_x - s.others[0][0]) <= 3.15 for s in careless)
+
+
+def test_with_priority_a_vehicle_stopping_for_its_red_is_not_a_violator() -> None:
+    """The same car braking at 4.5 m/s^2 to stand at its line (centre 2.25 m before the zone), and one already
+    standing there: the ego keeps its speed through the junction."""
+    cfg = PlannerConfig()
+    stopping = (LINE_X + 5.0, -26.0, math.pi / 2, 0.0, 11.0)
+    steps = _drive(11.0, [stopping], 5.0, cfg, junction=True, priority=True, stop_y=-5.0 - 2.25)
+    assert all(s.plan.reason != "yield" for s in steps)
+    assert steps[-1].ego_x + EGO_LEN / 2 > LINE_X + 10.0
+    standing = (LINE_X + 5.0, -7.25, math.pi / 2, 0.0, 0.0)
+    assert all(s.plan.reason != "yield" for s in _drive(11.0, [standing], 5.0, cfg, junction=True, priority=True))
