@@ -21,10 +21,17 @@ SEEDS = (2, 5)  # seeds where the hidden foe reaches the junction as the ego doe
 # (scenario, seed, overrides): per benchmark family a configuration where a blind ego is hit and the oracle is not.
 # blind_pullout: the 14 s its seeds were chosen at (cavs.meet.horizon_s caps the look-ahead, so the cast is the
 # one a 14 s run has). crossing_paths: the foe 0.5 s ahead of the ego's free-flow arrival, where a planner fed
-# nothing is hit on tuning seeds 100-105 (it crosses unhindered at later offsets).
+# nothing is hit on tuning seeds 100-105 (it crosses unhindered at later offsets). red_light_runner: the runner at
+# 14 m/s as the ego arrives on its green (the oracle gives way; the blind ego drives on). ramp_merge: the foe as the ego
+# reaches the ramp's give-way line at free flow (a planner fed nothing never slows; one on its own LiDAR, which
+# briefly yields to what it does see, is hit at later offsets).
 CASES = [(OCCLUDED, seed, ("duration_s=14",)) for seed in SEEDS] + [
     (SCENARIOS / "crossroads_occluded.yaml", 100, ("duration_s=20", "traffic.hidden_foe.arrival_offset_s=[-0.5, -0.5]",
-                                                   "traffic.hidden_foe.speed_mps=11"))]
+                                                   "traffic.hidden_foe.speed_mps=11")),
+    (SCENARIOS / "red_light_runner.yaml", 100, ("duration_s=20", "traffic.hidden_foe.arrival_offset_s=[0, 0]",
+                                                "traffic.hidden_foe.speed_mps=14")),
+    (SCENARIOS / "ramp_merge.yaml", 100, ("duration_s=20", "traffic.hidden_foe.arrival_offset_s=[0, 0]",
+                                          "traffic.hidden_foe.speed_mps=11"))]
 
 
 def _drive(method: str, seed: int, scenario: Path = OCCLUDED, overrides: tuple[str, ...] = ("duration_s=14",)) -> dict:
