@@ -24,6 +24,12 @@ def _check_cross_fields(sc: Scenario, loader: _Loader) -> None:
     if sc.traffic.hidden_foe is not None and sc.traffic.backend != "sumo":
         loader.fail("traffic.hidden_foe", "needs traffic.backend 'sumo' (the foe is placed on a SUMO junction); "
                     "allowed otherwise: null")
+    if sc.traffic.standing and sc.traffic.backend != "sumo":
+        loader.fail("traffic.standing", "needs traffic.backend 'sumo' (the vehicles stand in SUMO lanes); "
+                    "allowed otherwise: []")
+    if len(sc.cavs.movements) > sc.cavs.count:
+        loader.fail("cavs.movements", f"{len(sc.cavs.movements)} movements for {sc.cavs.count} CAVs; allowed: at "
+                    f"most cavs.count")
     if isinstance(sc.cavs.ego, tuple) and not sc.cavs.ego:
         loader.fail("cavs.ego", "an empty list; allowed: 'first', 'all' or a list of CAV ids")
     if sc.comm.drop.model == "gilbert_elliott" and sc.comm.drop.p_bg == 0 and sc.comm.drop.p_gb > 0:

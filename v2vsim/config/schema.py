@@ -61,13 +61,27 @@ class HiddenFoeConfig:
                                                "ego's free-flow arrival at its stop line)",
                                                lambda v: -10 <= v[0] <= v[1] <= 10)
     attentive: bool = False
-    side: Literal["auto", "left", "right"] = "auto"  # auto: the main-road arm that buildings hide from the ego
+    # auto: the main-road arm that buildings hide from the ego; opposite: oncoming traffic (an ego turning left)
+    side: Literal["auto", "left", "right", "opposite"] = "auto"
     # its free-flow speed: null = the lane's speed limit; a benchmark grid's second factor (as Coopernaut's)
     speed_mps: float | None = _f(None, "0 < v <= 40 (m/s) or null (the lane's speed limit)",
                                  lambda v: 0 < v <= 40)
     # true: it drives through a red light (SUMO's junctionModel.jmDriveAfterRedTime), a red-light runner at a
     # signalised junction where the ego has green (scenarios/red_light_runner.yaml)
     runs_red: bool = False
+
+
+@dataclass(frozen=True)
+class StandingVehicle:
+    """A vehicle that stands in a lane for the whole run (v2vsim/traffic/sumo_standing.py): a truck queued to turn
+    left, a parked van, a broken-down car. It is there from the start of the warm-up; traffic behind it queues or
+    changes lane. Its type's extents (car 4.5 x 1.9 x 1.5 m, van 5.4 x 2.0 x 2.4, truck 8.5 x 2.5 x 3.4) make it an
+    occluder for LiDAR and cameras as any vehicle is."""
+
+    edge: str = _f("", "an edge id of traffic.net", lambda v: bool(v))
+    lane: int = _f(0, ">= 0 (lane index on the edge, 0 = its rightmost)", _nonneg)
+    to_end_m: float = _f(0.5, ">= 0 (m from its front bumper to the lane's end: 0.5 = at the stop line)", _nonneg)
+    type: Literal["car", "van", "truck"] = "truck"
 
 
 @dataclass(frozen=True)
@@ -80,6 +94,7 @@ class TrafficConfig:
     building_height_m: tuple[float, float] = _f((8.0, 15.0), "[lo, hi] with 0 < lo <= hi",
                                                 lambda v: 0 < v[0] <= v[1])
     hidden_foe: HiddenFoeConfig | None = None  # null: no foe (SUMO backend only)
+    standing: tuple[StandingVehicle, ...] = ()  # vehicles standing in a lane all run (SUMO backend only)
 
 
 @dataclass(frozen=True)
@@ -123,6 +138,9 @@ class CavsConfig:
                                         "at which the CAVs reach the junction at free-flow speed)",
                                         lambda v: 0 <= v[0] <= v[1] <= 60)
     meet: MeetConfig = field(default_factory=MeetConfig)
+    # the movement of CAV i (cav0 first) through the junction in every placement candidate, where given: e.g.
+    # [left] makes the ego turn left across oncoming traffic (empty: the placement's own choice)
+    movements: tuple[Literal["straight", "left", "right"], ...] = ()
     # a mixed fleet: groups of CAVs with their own sensor and encoder; a CAV in no group runs perception.modality
     # and perception.encoder (empty: every CAV does, as in every single-modality run)
     fleet: tuple[FleetGroup, ...] = ()

@@ -47,6 +47,7 @@ from v2vsim.traffic.sumo_control import DrivenVehicles, control_args
 from v2vsim.traffic.sumo_hidden_foe import FoePlan, insert_hidden_foe
 from v2vsim.traffic.sumo_network import Route, analyse_network
 from v2vsim.traffic.sumo_placement import CavPlan, CavSpec, Placement, choose_placement, insert_cavs, meet_ref
+from v2vsim.traffic.sumo_standing import check_standing, insert_standing
 from v2vsim.world.geometry import Pose, wrap_angle
 from v2vsim.world.state import Actor, StaticMap, WorldState
 
@@ -108,6 +109,7 @@ class SumoBackend(BackendBase):
         self._dt = 1.0 / scenario.rate_hz
         self._net = sumolib.net.readNet(scenario.traffic.net, withInternal=True)
         self.topology = analyse_network(self._net)
+        check_standing(self._net, scenario)
         self._static = load_sumo_map(scenario.traffic.net, scenario.traffic.buildings,
                                      scenario.traffic.building_height_m, scenario.seed)
         self._running = False
@@ -173,6 +175,7 @@ class SumoBackend(BackendBase):
         for r in self.topology.routes:
             ls.route.add(r.id, list(r.edges))
         ls.simulation.subscribe([ls.constants.VAR_DEPARTED_VEHICLES_IDS])
+        insert_standing(ls, self._net, sc)  # before the background, which fills in around them
         self._prefill(ls)
         warm_steps = max(0, round(sc.traffic.warmup_s * sc.rate_hz))
         for _ in range(max(0, warm_steps - 1)):

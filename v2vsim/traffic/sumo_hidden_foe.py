@@ -6,7 +6,8 @@ cannot see, but the CAVs on the main road can, is the encounter where planning o
 planning on the ego's own perception part ways.
 
 What is placed, and how (deterministic per seed; nothing here touches the background stream's generator):
-1. Side: `left` / `right` is the main-road arm on that side of the ego's heading into the junction. `auto` is the
+1. Side: `left` / `right` is the main-road arm on that side of the ego's heading into the junction, `opposite` the
+   arm straight ahead of it (oncoming traffic, for an ego that turns left across it). `auto` is the
    one whose approach buildings hide best from the ego's approach: 2D sight lines from points on the ego's lane
    (its stop line and up to 20 m before it) to points on that arm's near lane (15-90 m before the junction) are
    tested against the building footprints, and the arm with the larger blocked share wins (a tie: the arm whose
@@ -44,7 +45,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from types import ModuleType
-from typing import Literal, get_args
+from typing import Literal
 
 import numpy as np
 import shapely
@@ -56,7 +57,7 @@ from v2vsim.traffic.sumo_placement import _FOLLOWER_DECEL, CavPlan, _lanes_for, 
 from v2vsim.world.geometry import wrap_angle
 from v2vsim.world.state import Building
 
-Side = Literal["left", "right"]
+Side = Literal["left", "right", "opposite"]
 
 FOE_ID = "foe0"
 FOE_TYPE = "foe"
@@ -141,17 +142,25 @@ def _ego_lane_shape(net: sumolib.net.Net, plan: CavPlan) -> list[tuple[float, ..
 
 def foe_arm(net: sumolib.net.Net, topology: Topology, ego: CavPlan, buildings: tuple[Building, ...],
             side: str) -> tuple[Side, Arm]:
-    """The arm the foe comes from (see module doc, 1): `side` is auto, left or right. Only arms with a straight
-    route through the junction count; with several on one side, the one nearest a right angle to the ego's
-    heading."""
+    """The arm the foe comes from (see module doc, 1): `side` is auto, left, right or opposite. Only arms with a
+    straight route through the junction count; with several on one side, the one nearest a right angle to the
+    ego's heading; opposite: the one nearest straight ahead, within _SIDE_ARC."""
     ego_arm = next(a for a in topology.arms if a.approach == ego.route.approach)
     heading = ego_arm.bearing + math.pi
+    if side == "opposite":
+        ahead = [a for a in topology.arms if a is not ego_arm and any(r.movement == "straight" for r in a.routes)
+                 and abs(float(wrap_angle(a.bearing - heading))) < _SIDE_ARC]
+        if not ahead:
+            raise ValueError(f"traffic.hidden_foe.side: no arm with a straight route opposite the ego's approach "
+                             f"{ego_arm.approach}")
+        return "opposite", min(ahead, key=lambda a: abs(float(wrap_angle(a.bearing - heading))))
     sides: dict[Side, Arm] = {}
     for a in sorted(topology.arms, key=lambda a: abs(abs(float(wrap_angle(a.bearing - heading))) - math.pi / 2)):
         s = side_of(ego_arm, a) if a is not ego_arm else None
         if s is not None and any(r.movement == "straight" for r in a.routes):
             sides.setdefault(s, a)
-    for s in get_args(Side):
+    lateral: tuple[Side, ...] = ("left", "right")
+    for s in lateral:
         if side == s:
             if s not in sides:
                 raise ValueError(f"traffic.hidden_foe.side: no arm with a straight route to the {s} of the ego's "

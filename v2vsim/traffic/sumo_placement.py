@@ -46,7 +46,7 @@ from types import ModuleType
 import numpy as np
 import sumolib
 
-from v2vsim.config import Scenario
+from v2vsim.config import ConfigError, Scenario
 from v2vsim.traffic.sumo_network import Arm, Route, Topology, order_arms
 
 # Movement wished for the i-th CAV (falls back to whatever its arm offers): turning CAVs stay
@@ -122,6 +122,20 @@ def _arrival_times(scenario: Scenario, cav_ids: tuple[str, ...]) -> list[float]:
     return [lo + (hi - lo) * (i / (n - 1) if n > 1 else 0.0) for i in range(n)]
 
 
+def _fixed_route(scenario: Scenario, i: int, arm: Arm) -> Route | None:
+    """CAV i's route when cavs.movements fixes its movement (None: not fixed). A movement its arm does not offer
+    is a scenario error, said with the arm's movements."""
+    moves = scenario.cavs.movements
+    if i >= len(moves):
+        return None
+    for r in arm.routes:
+        if r.movement == moves[i]:
+            return r
+    offered = ", ".join(sorted({r.movement for r in arm.routes}))
+    raise ConfigError(f"{scenario.source}: cavs.movements[{i}]: {moves[i]!r} is not a movement of cav{i}'s arm "
+                      f"{arm.approach}; allowed there: {offered}")
+
+
 def _cav_route(i: int, arm: Arm) -> Route:
     wanted = _CAV_MOVES[i % len(_CAV_MOVES)]
     for move in (wanted, "left", "right", "straight"):  # turning keeps a CAV near the junction
@@ -143,7 +157,7 @@ def _lanes_for(net: sumolib.net.Net, route: Route) -> list[int]:
 def candidates(scenario: Scenario, topology: Topology, cav_ids: tuple[str, ...]) -> list[tuple[CavSpec, ...]]:
     """The candidate placements, in the order the look-ahead tries them (deterministic per seed).
 
-    0: the canonical plan: CAV i on arm i (order_arms), its preferred movement (_CAV_MOVES),
+    0: the canonical plan: CAV i on arm i (order_arms), its preferred movement (_CAV_MOVES, or cavs.movements),
     arrival times spread evenly over cavs.arrival_s in CAV order. Then seeded variations: arrival
     times drawn in the window, routes drawn among the arm's movements (half of the time the
     route that leaves by cav0's exit, so the two drive off together); in the second half of the
@@ -154,7 +168,7 @@ def candidates(scenario: Scenario, topology: Topology, cav_ids: tuple[str, ...])
     na = len(arms)
     lo, hi = sc.cavs.arrival_s
     times = _arrival_times(sc, cav_ids)
-    out = [tuple(CavSpec(vid, _cav_route(i, arms[i % na]), i // na, times[i])
+    out = [tuple(CavSpec(vid, _fixed_route(sc, i, arms[i % na]) or _cav_route(i, arms[i % na]), i // na, times[i])
                  for i, vid in enumerate(cav_ids))]
     trials = sc.cavs.meet.trials
     for j in range(1, trials):
@@ -174,6 +188,7 @@ def candidates(scenario: Scenario, topology: Topology, cav_ids: tuple[str, ...])
                 route = same_exit[0] if same_exit else arm.routes[int(rng.integers(len(arm.routes)))]
             else:
                 route = arm.routes[int(rng.integers(len(arm.routes)))]
+            route = _fixed_route(sc, i, arm) or route  # drawn all the same: the generator's stream stays as it was
             t = float(rng.uniform(lo, hi))
             specs.append(CavSpec(vid, route, slot, t))
         out.append(tuple(specs))

@@ -24,14 +24,17 @@ SEEDS = (2, 5)  # seeds where the hidden foe reaches the junction as the ego doe
 # nothing is hit on tuning seeds 100-105 (it crosses unhindered at later offsets). red_light_runner: the runner at
 # 14 m/s as the ego arrives on its green (the oracle gives way; the blind ego drives on). ramp_merge: the foe as the ego
 # reaches the ramp's give-way line at free flow (a planner fed nothing never slows; one on its own LiDAR, which
-# briefly yields to what it does see, is hit at later offsets).
+# briefly yields to what it does see, is hit at later offsets). left_turn_truck: the oncoming foe, behind the
+# standing truck, 0.5 s after the ego's free-flow arrival (the LiDAR ego, which waits for what it sees, at 1.5-2.5 s).
 CASES = [(OCCLUDED, seed, ("duration_s=14",)) for seed in SEEDS] + [
     (SCENARIOS / "crossroads_occluded.yaml", 100, ("duration_s=20", "traffic.hidden_foe.arrival_offset_s=[-0.5, -0.5]",
                                                    "traffic.hidden_foe.speed_mps=11")),
     (SCENARIOS / "red_light_runner.yaml", 100, ("duration_s=20", "traffic.hidden_foe.arrival_offset_s=[0, 0]",
                                                 "traffic.hidden_foe.speed_mps=14")),
     (SCENARIOS / "ramp_merge.yaml", 100, ("duration_s=20", "traffic.hidden_foe.arrival_offset_s=[0, 0]",
-                                          "traffic.hidden_foe.speed_mps=11"))]
+                                          "traffic.hidden_foe.speed_mps=11")),
+    (SCENARIOS / "left_turn_truck.yaml", 100, ("duration_s=20", "traffic.hidden_foe.arrival_offset_s=[0.5, 0.5]",
+                                               "traffic.hidden_foe.speed_mps=11"))]
 
 
 def _drive(method: str, seed: int, scenario: Path = OCCLUDED, overrides: tuple[str, ...] = ("duration_s=14",)) -> dict:
