@@ -85,6 +85,18 @@ class StandingVehicle:
 
 
 @dataclass(frozen=True)
+class HiddenStopConfig:
+    """A vehicle standing in the ego's exit lane just past the main junction (v2vsim/traffic/sumo_standing.py
+    insert_hidden_stop): a lead vehicle stopped around a blind corner (NHTSA "lead vehicle stopped"). It is
+    inserted with the CAVs, `distance_m` from the start of the lane the ego leaves the junction by (its rear), and
+    drives off `until_s` after frame 0."""
+
+    distance_m: float = _f(10.0, ">= 0 (m from the start of the ego's exit lane to its rear bumper)", _nonneg)
+    until_s: float = _f(15.0, "> 0 (s after frame 0 at which it drives off)", _pos)
+    type: Literal["car", "van", "truck"] = "car"
+
+
+@dataclass(frozen=True)
 class TrafficConfig:
     backend: Literal["sumo", "highway-env"] = "sumo"
     net: str | None = _f(None, "path to a SUMO .net.xml, relative to the YAML", path="file?")
@@ -95,6 +107,7 @@ class TrafficConfig:
                                                 lambda v: 0 < v[0] <= v[1])
     hidden_foe: HiddenFoeConfig | None = None  # null: no foe (SUMO backend only)
     standing: tuple[StandingVehicle, ...] = ()  # vehicles standing in a lane all run (SUMO backend only)
+    hidden_stop: HiddenStopConfig | None = None  # null: none (SUMO backend only)
 
 
 @dataclass(frozen=True)

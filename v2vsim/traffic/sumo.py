@@ -47,7 +47,7 @@ from v2vsim.traffic.sumo_control import DrivenVehicles, control_args
 from v2vsim.traffic.sumo_hidden_foe import FoePlan, insert_hidden_foe
 from v2vsim.traffic.sumo_network import Route, analyse_network
 from v2vsim.traffic.sumo_placement import CavPlan, CavSpec, Placement, choose_placement, insert_cavs, meet_ref
-from v2vsim.traffic.sumo_standing import check_standing, insert_standing
+from v2vsim.traffic.sumo_standing import check_standing, insert_hidden_stop, insert_standing
 from v2vsim.world.geometry import Pose, wrap_angle
 from v2vsim.world.state import Actor, StaticMap, WorldState
 
@@ -123,6 +123,7 @@ class SumoBackend(BackendBase):
         self.cav_plans: tuple[CavPlan, ...] = ()
         self.placement: Placement | None = None
         self.hidden_foe: FoePlan | None = None  # traffic.hidden_foe: where foe0 went (sumo_hidden_foe)
+        self.hidden_stop: str | None = None  # traffic.hidden_stop: stopped0, when it found a spot (sumo_standing)
         self._chosen: tuple[CavSpec, ...] | None = None  # the look-ahead's choice; a later reset() reuses it
         # closed loop (control section): the egos' vehicles follow commands; SSM log to ssm_file, or (none given)
         # to a temporary folder removed at close: SUMO's default, ssm_<vehicle>.xml, lands in the working directory
@@ -182,6 +183,7 @@ class SumoBackend(BackendBase):
             self._advance(ls)
         self.cav_plans = insert_cavs(ls, self._net, self.topology, specs, _CAV_LENGTH, _MIN_GAP)
         self.hidden_foe = insert_hidden_foe(ls, self._net, self.topology, sc, self.cav_plans, self._static.buildings)
+        self.hidden_stop = insert_hidden_stop(ls, self._net, sc, self.cav_plans, self._dt)
         self._advance(ls)
         for margin in (2.0, 3.0, 4.0, 6.0):  # rare: SUMO refused a spot; re-plan it more cautiously
             missing = {c for c in self._cav_ids if c not in self._known}

@@ -173,6 +173,25 @@ class DrivenVehicles:
 
         return read("minTTC"), read("maxDRAC"), read("minPET")
 
+    @staticmethod
+    def _beyond_junction(ls: ModuleType, v: str, lane: str) -> list[tuple[float, float]]:
+        """The shapes from an internal lane to the first lane of the route's next edge (via further internal
+        lanes, if any): without them a vehicle crossing a junction would see its path end at the junction's edge
+        and lose the vehicle standing just past it."""
+        route = ls.vehicle.getRoute(v)
+        ahead = set(route[ls.vehicle.getRouteIndex(v) + 1:])
+        points: list[tuple[float, float]] = []
+        for _ in range(4):  # a connection has at most a couple of internal lanes
+            nxt = next((lk[0] for lk in ls.lane.getLinks(lane) if ls.lane.getEdgeID(lk[0]) in ahead
+                        or lk[0].startswith(":")), None)
+            if nxt is None:
+                break
+            points += list(ls.lane.getShape(nxt))
+            if not nxt.startswith(":"):
+                break
+            lane = nxt
+        return points
+
     def _route_ahead(self, ls: ModuleType, v: str) -> tuple[np.ndarray, float | None, np.ndarray | None, bool]:
         lane = ls.vehicle.getLaneID(v)
         pos = float(ls.vehicle.getLanePosition(v))
@@ -185,6 +204,8 @@ class DrivenVehicles:
             for nxt in (internal, approached):
                 if nxt:
                     points += list(ls.lane.getShape(nxt))
+        if in_junction and not links:  # SUMO lists no next links inside a junction: follow the lane's own ones
+            points += self._beyond_junction(ls, v, lane)
         path = _resample(points, PATH_STEP_M, PATH_AHEAD_M)
         node = self._net.getEdge(ls.lane.getEdgeID(lane)).getToNode()
         ahead = length - pos
