@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from v2vsim.config import ConfigError, load_scenario
+from v2vsim.traffic import make_backend
 from v2vsim.traffic.sumo import SumoBackend, _libsumo
 from v2vsim.traffic.sumo_hidden_foe import FOE_ID
 
@@ -98,3 +99,38 @@ def test_a_red_light_runner_drives_through_its_red_at_its_speed() -> None:
         ls = _libsumo()
         lowest = min(ls.vehicle.getSpeed(FOE_ID) for _ in range(80) if tb.step() is not None)
     assert lowest < 0.1
+
+
+def test_a_hidden_stop_stands_in_the_ego_s_exit_lane_until_its_time() -> None:
+    sc = _open_loop(SCENARIOS / "blind_corner_stop.yaml", "seed=100", "traffic.hidden_stop.distance_m=12",
+                    "traffic.hidden_stop.until_s=3")
+    with SumoBackend(sc) as tb:
+        tb.reset()
+        ls = _libsumo()
+        assert tb.hidden_stop == "stopped0" and tb.cav_plans[0].route.exit == "C2S"
+        assert ls.vehicle.getLaneID("stopped0") == "C2S_0"
+        rear = ls.vehicle.getLanePosition("stopped0") - ls.vehicle.getLength("stopped0")
+        assert abs(rear - 12.0) < 0.05
+        speeds = []
+        for _ in range(60):
+            tb.step()
+            speeds.append(ls.vehicle.getSpeed("stopped0"))
+    assert max(speeds[:25]) == 0.0 and max(speeds[40:]) > 2.0  # it stands 3 s, then drives off
+
+
+def test_a_driven_vehicle_crossing_the_junction_sees_its_path_beyond_it() -> None:
+    """SUMO lists no next links on an internal lane: the path must still reach into the exit edge, or the planner
+    loses a vehicle standing just past the junction."""
+    sc = load_scenario(SCENARIOS / "blind_corner_stop.yaml", ["seed=100", "duration_s=12", "control.method=oracle"])
+    with make_backend(sc, closed_loop=True) as tb:
+        w = tb.reset()
+        inside = []
+        for _ in range(80):
+            tb.command({"cav0": 0.0})  # keep its speed: it crosses the junction
+            w = tb.step()
+            d = w.driven[0] if w.driven else None
+            if d is not None and d.in_junction:
+                inside.append(d.path)
+    assert inside
+    for path in inside:  # from the internal lane south into C2S (x ~ 397.25), well past the junction's edge
+        assert path[-1][1] < 239.0 - 30.0 and abs(path[-1][0] - 397.25) < 0.5
