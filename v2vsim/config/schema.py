@@ -356,6 +356,10 @@ class IdmConfig:
     comfort_decel_mps2: float = _f(3.0, "> 0 (m/s^2)", _pos)
     max_decel_mps2: float = _f(8.0, "> 0 (m/s^2, the hardest braking any command asks)", _pos)
     gap_acceptance_s: float = _f(5.0, "> 0 (s: a crossing vehicle arriving sooner blocks the junction)", _pos)
+    # with priority, give way to a crossing vehicle that would need more than violator_decel_mps2 to stop before the
+    # junction and meets the ego there (a red-light runner), while the ego can still stop (planner find_violator)
+    yield_to_violators: bool = True
+    violator_decel_mps2: float = _f(6.0, "> 0 (m/s^2)", _pos)
 
 
 @dataclass(frozen=True)

@@ -32,7 +32,8 @@ def planner_config(sc: Scenario) -> PlannerConfig:
     i = sc.control.idm
     return PlannerConfig(desired_speed=i.desired_speed_mps, time_headway_s=i.time_headway_s, min_gap_m=i.min_gap_m,
                          max_accel=i.max_accel_mps2, comfort_decel=i.comfort_decel_mps2,
-                         max_decel=i.max_decel_mps2, gap_acceptance_s=i.gap_acceptance_s)
+                         max_decel=i.max_decel_mps2, gap_acceptance_s=i.gap_acceptance_s,
+                         yield_to_violators=i.yield_to_violators, violator_decel=i.violator_decel_mps2)
 
 
 @dataclass(frozen=True)
