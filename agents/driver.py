@@ -146,6 +146,8 @@ def drive(args: AgentArgs, bus: Bus) -> int:
     word: dict | None = None  # what the driver tells the egos as it ends (final_word): computed once
     try:
         world = backend.reset()
+        for missing in getattr(backend, "missing_actors", lambda: ())():  # a critical actor SUMO had no room for
+            print(f"v2vsim-driver: {missing}", file=sys.stderr, flush=True)
         static = static_to_bytes(backend.static)
         if len(static) > MAX_STATIC_BYTES:
             raise ValueError(f"the static map is {len(static)} bytes; agents accept at most {MAX_STATIC_BYTES}")

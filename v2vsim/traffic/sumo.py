@@ -152,6 +152,18 @@ class SumoBackend(BackendBase):
             self._driven.take_over(ls, self._known)
         return self._state(ls)
 
+    def missing_actors(self) -> tuple[str, ...]:
+        """The scenario's critical actors this run goes without (no free spot for them at insertion): each one a
+        sentence for the run's log, since an episode without its critical actor is not the one the grid asked for."""
+        sc = self.scenario
+        out = []
+        if sc.traffic.hidden_foe is not None and self.hidden_foe is None:
+            out.append("traffic.hidden_foe: no lane of the foe's arm had room for foe0; this run goes without it")
+        if sc.traffic.hidden_stop is not None and self.hidden_stop is None:
+            out.append("traffic.hidden_stop: the ego's exit lane had no free spot for stopped0; this run goes "
+                       "without it")
+        return tuple(out)
+
     def _launch(self, specs: tuple[CavSpec, ...], final: bool = False) -> ModuleType:
         """Start SUMO, warm up, insert the CAVs of `specs` and take the step that makes frame 0. `final`: the
         run itself, not a placement look-ahead (only it gets the closed loop's collision and SSM options)."""

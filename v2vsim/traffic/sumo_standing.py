@@ -89,6 +89,9 @@ def insert_hidden_stop(ls: ModuleType, net: sumolib.net.Net, scenario: Scenario,
     lane_id = f"{edge_id}_{lane_n}"
     length_v = ls.vehicletype.getLength(cfg.type)
     lane_len = ls.lane.getLength(lane_id)
+    if cfg.distance_m + length_v > lane_len - 1.0:
+        raise ConfigError(f"{scenario.source}: traffic.hidden_stop.distance_m: {cfg.distance_m:g} m; the ego's exit "
+                          f"lane {lane_id} is {lane_len:.1f} m long: allowed up to {lane_len - 1.0 - length_v:.1f} m")
     taken = [(ls.vehicle.getLanePosition(v) - ls.vehicle.getLength(v), ls.vehicle.getLanePosition(v))
              for v in ls.lane.getLastStepVehicleIDs(lane_id)]
     for shift in range(21):

@@ -116,6 +116,11 @@ def test_a_hidden_stop_stands_in_the_ego_s_exit_lane_until_its_time() -> None:
             tb.step()
             speeds.append(ls.vehicle.getSpeed("stopped0"))
     assert max(speeds[:25]) == 0.0 and max(speeds[40:]) > 2.0  # it stands 3 s, then drives off
+    assert tb.missing_actors() == ()  # the driver logs each critical actor a run goes without
+    far = _open_loop(SCENARIOS / "blind_corner_stop.yaml", "seed=100", "traffic.hidden_stop.distance_m=500")
+    with pytest.raises(ConfigError, match=r"traffic.hidden_stop.distance_m: 500 m; the ego's exit lane C2S_0 is"):
+        with SumoBackend(far) as tb:
+            tb.reset()
 
 
 def test_a_driven_vehicle_crossing_the_junction_sees_its_path_beyond_it() -> None:
