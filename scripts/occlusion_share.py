@@ -10,6 +10,9 @@ the encounter counts when all three hold:
   hidden    2 s before that moment, the 2D segment from the ego's front to foe0's centre crosses a building, or the
             footprint of a vehicle standing all run (traffic.standing);
   seen      at that time at least one other CAV has an unblocked segment (centre to centre) to foe0 within 60 m.
+A scenario with traffic.hidden_stop instead judges stopped0 (the stopped lead vehicle) the same way; it stands in
+the junction's exit lane, so its "junction" time is when the ego's path first holds it: its front is inside the
+junction outline never, and the timing counts as met while it still stands when the ego reaches its stop line.
 Prints a per-seed table and the share of seeds with the encounter.
 """
 
@@ -28,7 +31,7 @@ from v2vsim.config import load_scenario
 from v2vsim.traffic import make_backend
 from v2vsim.traffic.sumo import SumoBackend, _libsumo
 from v2vsim.traffic.sumo_hidden_foe import FOE_ID, sight_blocked
-from v2vsim.traffic.sumo_standing import STANDING_PREFIX
+from v2vsim.traffic.sumo_standing import HIDDEN_STOP_ID, STANDING_PREFIX
 from v2vsim.world.state import Actor, Building
 
 _WINDOW_S = (-1.0, 3.0)  # foe at the junction relative to the ego at its stop line
@@ -103,10 +106,11 @@ def _sample(tb: SumoBackend, world, ego: str, approach: str) -> Sample:
         on_approach = lane.startswith(f"{approach}_")
         ego_at_stop = not on_approach or ls.vehicle.getLanePosition(ego) >= ls.lane.getLength(lane) - _STOP_TOL_M
     foe_front = foe_centre = None
-    if FOE_ID in present:
-        x, y = ls.vehicle.getPosition(FOE_ID)
+    target = FOE_ID if FOE_ID in present else HIDDEN_STOP_ID  # the hidden foe, or the stopped lead vehicle
+    if target in present:
+        x, y = ls.vehicle.getPosition(target)
         foe_front = (float(x), float(y))
-        a = world.actor(FOE_ID)
+        a = world.actor(target)
         foe_centre = (a.pose.x, a.pose.y)
     cavs = {a.id: (a.pose.x, a.pose.y) for a in world.cavs}
     return Sample(ego_front, bool(ego_at_stop), foe_front, foe_centre, cavs)
@@ -125,7 +129,7 @@ def measure(scenario_path: str, seed: int, overrides: list[str]) -> Outcome:
         buildings = tb.static.buildings + tuple(
             Building(id=a.id, polygon=footprint(a), height=a.extent[2])
             for a in world.actors if a.id.startswith(STANDING_PREFIX))
-        samples = [_sample(tb, world, ego, approach)]
+        samples = [_sample(tb, world, ego, approach)]  # "foe": foe0, or stopped0 with traffic.hidden_stop
         for _ in range(sc.frames - 1):
             world = tb.step()
             samples.append(_sample(tb, world, ego, approach))
@@ -134,6 +138,8 @@ def measure(scenario_path: str, seed: int, overrides: list[str]) -> Outcome:
     k_ego = next((k for k, s in enumerate(samples) if s.ego_at_stop), None)
     k_foe = next((k for k, s in enumerate(samples)
                   if s.foe_front is not None and junction.covers(shapely.Point(s.foe_front))), None)
+    if sc.traffic.hidden_stop is not None and k_ego is not None and samples[k_ego].foe_front is not None:
+        k_foe = k_ego  # the stopped car is there when the ego reaches its stop line: the timing holds
     hidden, seers = None, ()
     k_look = None if k_ego is None else k_ego - round(_LOOK_BEFORE_S / dt)
     if k_look is not None and k_look >= 0:
