@@ -19,12 +19,10 @@ Prints a per-seed table and the share of seeds with the encounter.
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
 from dataclasses import dataclass
 
-import numpy as np
 import shapely
 
 from v2vsim.config import load_scenario
@@ -32,7 +30,7 @@ from v2vsim.traffic import make_backend
 from v2vsim.traffic.sumo import SumoBackend, _libsumo
 from v2vsim.traffic.sumo_hidden_foe import FOE_ID, sight_blocked
 from v2vsim.traffic.sumo_standing import HIDDEN_STOP_ID, STANDING_PREFIX
-from v2vsim.world.state import Actor, Building
+from v2vsim.world.state import Building
 
 _WINDOW_S = (-1.0, 3.0)  # foe at the junction relative to the ego at its stop line
 _LOOK_BEFORE_S = 2.0  # when the sight lines are judged, before the ego reaches its stop line
@@ -78,14 +76,6 @@ class Outcome:
         return self.timing and bool(self.hidden) and bool(self.seers)
 
 
-def footprint(a: Actor) -> np.ndarray:
-    """(4, 2) world-frame corners of an actor's footprint."""
-    c, s_ = math.cos(a.pose.yaw), math.sin(a.pose.yaw)
-    hl, hw = a.extent[0] / 2, a.extent[1] / 2
-    local = np.array([[hl, hw], [-hl, hw], [-hl, -hw], [hl, -hw]])
-    return np.stack([a.pose.x + local[:, 0] * c - local[:, 1] * s_, a.pose.y + local[:, 0] * s_ + local[:, 1] * c], 1)
-
-
 def parse_seeds(text: str) -> list[int]:
     """'0-19' or '0,3,5-7' -> seeds."""
     out: list[int] = []
@@ -127,7 +117,7 @@ def measure(scenario_path: str, seed: int, overrides: list[str]) -> Outcome:
         junction = shapely.Polygon([p[:2] for p in tb._net.getNode(tb.topology.junction).getShape()])
         # vehicles standing all run (traffic.standing: a truck waiting to turn) occlude as buildings do
         buildings = tb.static.buildings + tuple(
-            Building(id=a.id, polygon=footprint(a), height=a.extent[2])
+            Building(id=a.id, polygon=a.footprint(), height=a.extent[2])
             for a in world.actors if a.id.startswith(STANDING_PREFIX))
         samples = [_sample(tb, world, ego, approach)]  # "foe": foe0, or stopped0 with traffic.hidden_stop
         for _ in range(sc.frames - 1):

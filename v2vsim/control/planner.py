@@ -163,15 +163,20 @@ PREDICT_STEP_S = 0.1  # time step of a foe's constant-velocity prediction (time_
 CONFLICT_STEP_M = 1.0  # spacing of the points of the ego's path inside the junction (conflict_points)
 
 
+def _path_samples(path: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The (M >= 2, 2) path sampled every CONFLICT_STEP_M: arc lengths (C,) and points (C, 2)."""
+    seg = np.linalg.norm(np.diff(path, axis=0), axis=1)
+    s = np.r_[0.0, np.cumsum(seg)]
+    at = np.arange(0.0, s[-1] + 1e-9, CONFLICT_STEP_M)
+    return at, np.stack([np.interp(at, s, path[:, 0]), np.interp(at, s, path[:, 1])], axis=1)
+
+
 def conflict_points(route: RouteAhead, cfg: PlannerConfig) -> np.ndarray:
     """(C, 2) points every CONFLICT_STEP_M of the ego's path that lie in the conflict zone grown by zone_margin_m:
     the part of the junction the ego will sweep. Empty when the path does not enter it."""
     if route.conflict_zone is None or len(route.path) < 2:
         return np.zeros((0, 2))
-    seg = np.linalg.norm(np.diff(route.path, axis=0), axis=1)
-    s = np.r_[0.0, np.cumsum(seg)]
-    at = np.arange(0.0, s[-1] + 1e-9, CONFLICT_STEP_M)
-    pts = np.stack([np.interp(at, s, route.path[:, 0]), np.interp(at, s, route.path[:, 1])], axis=1)
+    _, pts = _path_samples(route.path)
     return pts[in_grown_polygon(route.conflict_zone, cfg.zone_margin_m, pts)]
 
 
@@ -228,17 +233,15 @@ def zone_entry_m(route: RouteAhead) -> float | None:
     it), to CONFLICT_STEP_M; None without a zone or when the path does not enter it."""
     if route.conflict_zone is None or len(route.path) < 2:
         return None
-    seg = np.linalg.norm(np.diff(route.path, axis=0), axis=1)
-    s = np.r_[0.0, np.cumsum(seg)]
-    at = np.arange(0.0, s[-1] + 1e-9, CONFLICT_STEP_M)
-    pts = np.stack([np.interp(at, s, route.path[:, 0]), np.interp(at, s, route.path[:, 1])], axis=1)
+    at, pts = _path_samples(route.path)
     inside = point_in_polygon(route.conflict_zone, pts)
     return float(at[int(np.argmax(inside))]) if inside.any() else None
 
 
 def find_violator(pose: Pose, speed: float, length: float, route: RouteAhead, tracks: tuple[Track, ...],
-                  cfg: PlannerConfig) -> tuple[Track, float] | None:
+                  cfg: PlannerConfig, entry: float) -> tuple[Track, float] | None:
     """With priority, the crossing vehicle that will not give way, with its time to the ego's path, or None.
+    `entry`: zone_entry_m of the route (> 0: the ego is not in the junction yet).
 
     A violator is tracked (age > 1: its speed is known) and moving, reaches the ego's path through the junction
     (time_to_path, constant velocity) at t_f, and can no longer stop before the junction: v^2 / (2 d) >
@@ -251,8 +254,7 @@ def find_violator(pose: Pose, speed: float, length: float, route: RouteAhead, tr
     """
     zone = route.conflict_zone
     points = conflict_points(route, cfg)
-    entry = zone_entry_m(route)
-    if zone is None or entry is None or entry <= 0.0 or not len(points) or not tracks:
+    if zone is None or entry <= 0.0 or not len(points) or not tracks:
         return None
     s_last, _, _ = project_onto_polyline(route.path, points[-1:])  # arc length of the last conflict point
     v_e = max(speed, cfg.min_moving_mps)
@@ -328,13 +330,14 @@ def plan(pose: Pose, speed: float, length: float, route: RouteAhead, tracks: tup
             if blocker is not None:
                 terms.append(_Term(idm_acceleration(v, cfg, v0, line_gap, v), "yield", blocker[0]))
     elif route.conflict_zone is not None and cfg.yield_to_violators:
-        violator = find_violator(pose, v, length, route, tracks, cfg)
         entry = zone_entry_m(route)
         # the junction's entry is the standing virtual leader, while the ego can still stop before it: braking
         # that cannot would leave it standing in the violator's way, so it carries on instead (it is committed)
-        if violator is not None and entry is not None and v * v / (2.0 * cfg.max_decel) <= entry:
-            terms.append(_Term(idm_acceleration(v, cfg, v0, max(entry, _MIN_GAP_FOR_IDM_M), v), "yield",
-                               violator[0]))
+        if entry is not None and v * v / (2.0 * cfg.max_decel) <= entry:
+            violator = find_violator(pose, v, length, route, tracks, cfg, entry)
+            if violator is not None:
+                terms.append(_Term(idm_acceleration(v, cfg, v0, max(entry, _MIN_GAP_FOR_IDM_M), v), "yield",
+                                   violator[0]))
     if route.red_m is not None:  # a red (or amber) light: its stop line is a standing leader, whatever the traffic
         terms.append(_Term(idm_acceleration(v, cfg, v0, max(route.red_m, _MIN_GAP_FOR_IDM_M), v), "red_light", None))
     win = min(terms, key=lambda term: term.accel)  # min keeps the first of equal ones: (a) before (b)
