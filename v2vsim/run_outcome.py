@@ -9,13 +9,18 @@ from pathlib import Path
 from v2vsim.config import Scenario
 
 
+def ego_folder(out: Path, egos: list[str] | tuple[str, ...], ego: str) -> Path:
+    """Where an ego writes its metrics.json: the run's folder for the first ego, ego_<id>/ for the others."""
+    return out if ego == egos[0] else out / f"ego_{ego}"
+
+
 def write_failure_metrics(out: Path, sc: Scenario, egos: list[str], failures: list[str]) -> None:
     """A run that failed before an ego wrote its results (the ego killed, a crash before it started) still
     leaves metrics.json, with the contract's keys empty and `status` saying what happened, so that a sweep or
     a script reading the folder sees why instead of nothing."""
     why = "; ".join(failures) or "the run failed"
     for e in egos:
-        folder = out / ("" if e == egos[0] else f"ego_{e}")
+        folder = ego_folder(out, egos, e)
         if (folder / "metrics.json").exists():
             continue
         folder.mkdir(parents=True, exist_ok=True)
@@ -31,7 +36,7 @@ def ego_statuses(out: Path, egos: list[str]) -> dict[str, str]:
     got = {}
     for e in egos:
         try:
-            got[e] = str(json.loads((out / ("" if e == egos[0] else f"ego_{e}") / "metrics.json").read_text())
+            got[e] = str(json.loads((ego_folder(out, egos, e) / "metrics.json").read_text())
                          .get("status", "no status in metrics.json"))
         except (OSError, ValueError, AttributeError):
             got[e] = "no readable metrics.json"

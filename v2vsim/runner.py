@@ -41,6 +41,7 @@ from v2vsim.comm.identity import Identity, new_run_instance, write_identity_file
 from v2vsim.comm.identity import issue as issue_identities
 from v2vsim.comm.transport import TransportError, free_ports, loopback_endpoint, open_session
 from v2vsim.config import ConfigError, Scenario, check_output_dir
+from v2vsim.control.fleet import merge_fleet
 from v2vsim.evaluation.status import cav_ranges, terminal_line
 from v2vsim.perception.build import method_checkpoints, runnable_methods, zoo_for
 from v2vsim.perception.checks import check_scenario
@@ -213,6 +214,8 @@ def run(sc: Scenario, out: Path, frames: int | None = None, remote_cavs: tuple[s
         signal.signal(signal.SIGTERM, previous)
     if code not in (0, 130):
         write_failure_metrics(out, sc, egos, failures)
+    if code in (0, 130):
+        merge_fleet(out, egos)  # several driven CAVs: the run's own metrics.json and report measure the fleet
     if not interrupted and code == 0:
         report = out / "report.md"
         if report.is_file():  # the last line says what metrics.json says: complete, or what happened instead

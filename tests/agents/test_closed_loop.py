@@ -122,3 +122,26 @@ def test_a_route_completed_early_ends_the_run_complete_with_exit_0(tmp_path: Pat
     cav1 = json.loads((out / "timing" / "cav.cav1.json").read_text())
     assert "encoding" not in cav1["ms_per_frame"] and cav1["frames"] >= m["frames"] - 1
     assert "encoding" in json.loads((out / "timing" / "cav.cav0.json").read_text())["ms_per_frame"]
+
+
+def test_every_cav_driven_gives_each_a_driving_block_and_the_run_the_fleet(tmp_path: Path) -> None:
+    """issue 54 item 2: with cavs.ego=all each ego wrote only its own vehicle; the run's own metrics.json and report
+    now hold every driven CAV's entry and score, and the fleet's totals."""
+    out = tmp_path / "run"
+    done = subprocess.run([sys.executable, "-m", "v2vsim.cli", "run", OCCLUDED, "--out", str(out), "--frames", "15",
+                           "--set", "seed=2", "--set", "cavs.count=2", "--set", "cavs.ego=all",
+                           "--set", "control.method=oracle", "--set", "control.perceive=driving",
+                           "--set", "output.rerun=false"],
+                          capture_output=True, text=True, timeout=400)
+    assert done.returncode == 0, done.stderr[-3000:]
+    m = json.loads((out / "metrics.json").read_text())
+    d = m["driving"]
+    assert d["driven"] == ["cav0", "cav1"] and set(d["vehicles"]) == {"cav0", "cav1"}
+    own1 = json.loads((out / "ego_cav1" / "metrics.json").read_text())["driving"]
+    assert d["vehicles"]["cav1"] == own1["vehicles"]["cav1"]  # as cav1's ego measured it
+    for v in d["vehicles"].values():
+        assert v["frames"] == 15 and v["progress_m"] > 0 and "driving_score" in v
+    assert d["total"]["progress_m"] == pytest.approx(sum(v["progress_m"] for v in d["vehicles"].values()), abs=1e-3)
+    assert d["total"]["fleet"]["driven"] == 2 and d["total"]["fleet"]["collisions"] == 0
+    report = (out / "report.md").read_text()
+    assert "| cav0 | " in report and "| cav1 | " in report and "Fleet: 2 driven vehicles" in report
