@@ -184,6 +184,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY.PATH=VALUE",
                    help="an override for every run of every family (repeatable)")
     p.add_argument("--bootstrap", type=int, default=1000, metavar="B", help="bootstrap resamples (default 1000)")
+    p.add_argument("--stress", default=None, metavar="NAMES",
+                   help="comma-separated degradation axes of the catalogue (latency, loss, burst_loss, pose): each "
+                   "cooperative method x the axis's levels against none, and each method's breaking point "
+                   "(breaking_points.md) instead of the leaderboard")
     p.add_argument("--out", required=True, help="benchmark directory (resumable: complete runs there are reused)")
     p.set_defaults(func=verbs.cmd_benchmark)
 

@@ -243,7 +243,8 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
                                    catalogue=Path(args.catalogue) if args.catalogue else None, split=args.split,
                                    families=names(args.families), methods=names(args.methods), seeds=args.seeds,
                                    jobs=args.jobs, engine=args.engine, scheduler=args.scheduler,
-                                   overrides=tuple(args.overrides), bootstrap=args.bootstrap))
+                                   overrides=tuple(args.overrides), bootstrap=args.bootstrap,
+                                   stresses=names(args.stress)))
 
 
 def cmd_bandwidth(args: argparse.Namespace) -> int:

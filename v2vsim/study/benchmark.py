@@ -7,6 +7,10 @@ leaderboard (docs/benchmark.md).
                                 (v2vsim.study.leaderboard)
     DIR/leaderboard_*.png
 
+With --stress NAME,... (issue 54, v2vsim.study.stress) each family is several sweeps instead: its references (oracle,
+none) once, and per stress its cooperative methods x the stress's levels (and with compensation on, for the methods
+that have it); then DIR/breaking_points.md|csv|json and DIR/stress_<name>.png instead of the leaderboard.
+
 Each family is one sweep over control.method x the family's grid (as the profile thins it) on the split's first
 seeds, every run with control.perceive=driving: the ego computes only the method it drives on.
 """
@@ -15,17 +19,18 @@ from __future__ import annotations
 
 import json
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TextIO
 
 from v2vsim.config import ConfigError, check_output_dir
-from v2vsim.study.catalogue import SPLITS, Catalogue, load_catalogue
+from v2vsim.study.catalogue import ORACLE, SPLITS, Catalogue, Family, load_catalogue
 from v2vsim.study.leaderboard import episodes_of, write_leaderboard
 from v2vsim.study.plan import RunSpec
 from v2vsim.study.runs import Job
 from v2vsim.study.stats import DEFAULT_B
+from v2vsim.study.stress import COMP, REFERENCE, compensable, level_episodes, write_stress
 from v2vsim.study.sweep import EXIT_INTERRUPTED, SweepArgs, prepare, sweep
 
 DRIVING_ONLY = "control.perceive=driving"
@@ -45,10 +50,12 @@ class BenchmarkArgs:
     scheduler: str | None = None
     overrides: tuple[str, ...] = ()
     bootstrap: int = DEFAULT_B
+    stresses: tuple[str, ...] = ()  # degradation axes of the catalogue's `stress` section (v2vsim.study.stress)
 
 
 def family_sweeps(args: BenchmarkArgs, cat: Catalogue) -> list[tuple[str, SweepArgs]]:
-    """(family, its sweep's arguments), in catalogue order; ConfigError for a bad option."""
+    """(family, its sweep's arguments), in catalogue order; with stresses (family/part, ...) for each of a family's
+    sweeps (v2vsim.study.stress's layout). ConfigError for a bad option."""
     if args.profile not in cat.profiles:
         raise ConfigError(f"--profile {args.profile}: allowed: {', '.join(cat.profiles)}")
     if args.split not in SPLITS:
@@ -67,14 +74,31 @@ def family_sweeps(args: BenchmarkArgs, cat: Catalogue) -> list[tuple[str, SweepA
     if list(seeds) != list(range(seeds[0], seeds[0] + n)):
         raise ConfigError(f"{cat.source}: seeds.{args.split}: the first {n} seeds must be consecutive")
     text = f"{seeds[0]}-{seeds[-1]}"
+    stresses = [cat.stress(n) for n in args.stresses]
+
+    def one(f: Family, ms: Sequence[str], out: Path, extra: Sequence[str] = (), sets: Sequence[str] = ()
+            ) -> SweepArgs:
+        grid = (f"control.method={','.join(ms)}", *(f"{a.key}={','.join(a.texts)}" for a in f.axes(prof.levels)),
+                *extra)
+        return SweepArgs(scenario=f.scenario, grid=grid, seeds=text, out=out, jobs=args.jobs,
+                         overrides=(DRIVING_ONLY, *args.overrides, *sets), bootstrap=args.bootstrap,
+                         engine=args.engine, scheduler=args.scheduler, replay=False)
+
     out = []
     for f in fams:
-        grid = (f"control.method={','.join(methods)}",
-                *(f"{a.key}={','.join(a.texts)}" for a in f.axes(prof.levels)))
-        out.append((f.name, SweepArgs(scenario=f.scenario, grid=grid, seeds=text, out=args.out / "families" / f.name,
-                                      jobs=args.jobs, overrides=(DRIVING_ONLY, *args.overrides),
-                                      bootstrap=args.bootstrap, engine=args.engine, scheduler=args.scheduler,
-                                      replay=False)))
+        folder = args.out / "families" / f.name
+        if not stresses:
+            out.append((f.name, one(f, methods, folder)))
+            continue
+        out.append((f"{f.name}/{REFERENCE}", one(f, [m for m in methods if m in (ORACLE, "none")], folder / REFERENCE)))
+        coop = [m for m in methods if m not in (ORACLE, "none")]
+        for st in stresses:
+            level = f"{st.level.key}={','.join(st.level.texts)}"
+            out.append((f"{f.name}/{st.name}", one(f, coop, folder / st.name, [level], st.sets)))
+            comp = compensable(f.scenario, coop, args.overrides) if st.compensation else []
+            if comp:
+                out.append((f"{f.name}/{st.name}{COMP}", one(f, comp, folder / f"{st.name}{COMP}", [level],
+                                                              [*st.sets, "comm.compensation=true"])))
     return out
 
 
@@ -99,14 +123,22 @@ def benchmark(args: BenchmarkArgs, start: Callable[[RunSpec], Job] | None = None
             print("v2vsim benchmark: interrupted; run the same command again to resume", file=stream)
             return EXIT_INTERRUPTED
         code = code or rc
-    per_family = {}
-    for name, s in plan:
-        doc = json.loads((s.out / "sweep.json").read_text())
-        per_family[name] = episodes_of(name, doc)
     prof = cat.profiles[args.profile]
     meta = {"catalogue": str(cat.source), "profile": args.profile, "split": args.split,
-            "seeds": plan[0][1].seeds, "families": [n for n, _ in plan],
+            "seeds": plan[0][1].seeds, "families": list(dict.fromkeys(n.split("/")[0] for n, _ in plan)),
             "methods": list(args.methods or prof.methods), "overrides": list(args.overrides)}
+    docs = {name: json.loads((s.out / "sweep.json").read_text()) for name, s in plan}
+    if args.stresses:
+        stresses = [cat.stress(n) for n in args.stresses]
+        levels = {st.name: [{f: level_episodes(f, docs[f"{f}/{REFERENCE}"],
+                                                [(docs[n], n.removeprefix(f"{f}/{st.name}")) for n, _ in plan
+                                                 if n in (f"{f}/{st.name}", f"{f}/{st.name}{COMP}")],
+                                                st.level.key, v) for f in meta["families"]}
+                             for v in st.level.values] for st in stresses}
+        paths = write_stress(args.out, stresses, levels, {**meta, "stresses": list(args.stresses)}, args.bootstrap)
+        print(f"v2vsim benchmark: breaking points: {paths[0]}", file=stream)
+        return code
+    per_family = {name: episodes_of(name, doc) for name, doc in docs.items()}
     paths = write_leaderboard(args.out, per_family, meta["methods"], meta, args.bootstrap)
     print(f"v2vsim benchmark: leaderboard: {paths[0]}", file=stream)
     return code

@@ -7,14 +7,14 @@ that. Parsed once into frozen dataclasses; a malformed file is one ConfigError n
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import yaml
 
 from models.registry import METHODS
-from v2vsim.config import ConfigError
+from v2vsim.config import ConfigError, parse_override
 from v2vsim.config.shipped import scenarios_dir
 from v2vsim.study.grid import Axis, parse_axis, parse_seeds
 
@@ -49,12 +49,31 @@ class Profile:
 
 
 @dataclass(frozen=True)
+class Stress:
+    """One degradation axis of the stress study (v2vsim.study.stress): a scenario key and its levels, mildest
+    first."""
+
+    name: str
+    level: Axis  # the key and its levels (a level may be a mapping: comm.pose_noise={xy_std_m: .., ..})
+    x: tuple[float, ...]  # each level's position on the plots and in the tables
+    unit: str  # what x measures
+    compensation: bool  # also run the methods that have compensation with it on
+    sets: tuple[str, ...] = ()  # overrides of every stressed run (KEY.PATH=VALUE)
+
+
+@dataclass(frozen=True)
 class Catalogue:
     source: Path
     methods: tuple[str, ...]  # every method the full benchmark ranks, oracle and none first
     seeds: dict[str, tuple[int, ...]]  # split -> seeds (tuning: calibration only; heldout: the leaderboard)
     profiles: dict[str, Profile]
     families: tuple[Family, ...]
+    stresses: dict[str, Stress] = field(default_factory=dict)  # name -> degradation axis (`--stress`)
+
+    def stress(self, name: str) -> Stress:
+        if name not in self.stresses:
+            raise ConfigError(f"{self.source}: no stress {name!r}; stresses: {', '.join(self.stresses) or 'none'}")
+        return self.stresses[name]
 
     def family(self, name: str) -> Family:
         for f in self.families:
@@ -133,7 +152,7 @@ def load_catalogue(path: Path | None = None) -> Catalogue:
         raise ConfigError(f"{source}: cannot read the catalogue: {e.strerror or e}") from None
     except yaml.YAMLError as e:
         raise ConfigError(f"{source}: not valid YAML: {' '.join(str(e).split())}") from None
-    top = r.mapping(raw, "", {"methods", "seeds", "profiles", "families"},
+    top = r.mapping(raw, "", {"methods", "seeds", "profiles", "families", "stress"},
                     {"methods", "seeds", "profiles", "families"})
     methods = r.methods(top["methods"], "methods")
     if methods[:2] != (ORACLE, "none"):
@@ -191,4 +210,45 @@ def load_catalogue(path: Path | None = None) -> Catalogue:
     names = [f.name for f in families]
     if len(set(names)) != len(names):
         raise r.fail("families", "two families share a name")
-    return Catalogue(source, methods, seeds, profiles, tuple(families))
+    return Catalogue(source, methods, seeds, profiles, tuple(families), _stresses(r, top.get("stress") or {}))
+
+
+def _stresses(r: _Reader, raw: Any) -> dict[str, Stress]:
+    """The `stress` section: name -> {key, levels, x (default: the levels, when numbers), unit, compensation,
+    set (overrides of every stressed run)}."""
+    out: dict[str, Stress] = {}
+    for name, st in r.mapping(raw, "stress", set(raw or {}), set()).items():
+        where = f"stress.{name}"
+        st = r.mapping(st, where, {"key", "levels", "x", "unit", "compensation", "set"},
+                        {"key", "levels", "unit"})
+        levels = st["levels"]
+        if not isinstance(levels, list) or len(levels) < 2:
+            raise r.fail(f"{where}.levels", "expected a list of at least two levels, mildest first")
+        key = r.text(st["key"], f"{where}.key")
+        texts = ",".join(yaml.safe_dump(v, default_flow_style=True).strip().removesuffix("\n...").strip()
+                         for v in levels)
+        try:
+            axis = parse_axis(f"{key}={texts}")
+        except ConfigError as e:
+            raise r.fail(f"{where}.levels", str(e)) from None
+        x = st.get("x", levels)
+        if (not isinstance(x, list) or len(x) != len(levels)
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in x)):
+            raise r.fail(f"{where}.x", f"expected {len(levels)} numbers (each level's position; needed when the "
+                                       "levels are not numbers)")
+        if any(b <= a for a, b in zip(x, x[1:], strict=False)):
+            raise r.fail(f"{where}.x", "expected increasing numbers, mildest level first")
+        comp = st.get("compensation", False)
+        if not isinstance(comp, bool):
+            raise r.fail(f"{where}.compensation", f"expected true or false, got {comp!r}")
+        sets = st.get("set", [])
+        if not isinstance(sets, list) or not all(isinstance(o, str) and "=" in o for o in sets):
+            raise r.fail(f"{where}.set", "expected a list of KEY.PATH=VALUE overrides")
+        for i, o in enumerate(sets):
+            try:
+                parse_override(o)
+            except ConfigError as e:
+                raise r.fail(f"{where}.set[{i}]", str(e)) from None
+        out[name] = Stress(name, axis, tuple(float(v) for v in x), r.text(st["unit"], f"{where}.unit"), comp,
+                           tuple(sets))
+    return out

@@ -59,6 +59,7 @@ def episodes_of(family: str, doc: dict[str, Any]) -> dict[Episode, dict[str, dic
             "finished_at_s": _num(row.get("driving_finished_at_s")),
             # the map it drove on (oracle drove on ground truth; its row scores `none`, which it did not use)
             "iou_vehicle": None if m == ORACLE else _num(row.get("iou_vehicle")),
+            "ap50": None if m == ORACLE else _num(row.get("ap50")),
         }
     for runs in out.values():
         ref = (runs.get(ORACLE) or {}).get("finished_at_s")

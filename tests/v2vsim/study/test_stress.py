@@ -1,0 +1,138 @@
+"""`v2vsim benchmark --stress` (v2vsim/study/stress.py): the breaking point on hand-made intervals, the catalogue's
+stress section, the sweeps a stress study runs (references once, cooperative methods x levels, compensation where a
+method has it) and its breaking points on fake runs whose outcome is known."""
+
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+
+import pytest
+
+from v2vsim.study import runs as runs_mod
+from v2vsim.study.benchmark import DRIVING_ONLY, BenchmarkArgs, benchmark, family_sweeps
+from v2vsim.study.catalogue import load_catalogue
+from v2vsim.study.plan import RunSpec
+from v2vsim.study.stats import Interval
+from v2vsim.study.stress import breaking_index
+
+from .test_benchmark import FakeJob, _catalogue
+
+
+def _iv(lo: float | None, hi: float | None, mean: float = 0.1) -> Interval:
+    return Interval(mean, lo, hi, 6, 6)
+
+
+def test_the_breaking_point_is_the_first_level_whose_interval_no_longer_lies_above_0() -> None:
+    assert breaking_index([_iv(0.2, 0.5), _iv(0.01, 0.3), _iv(-0.1, 0.3), _iv(0.1, 0.4)]) == 2
+    assert breaking_index([_iv(0.2, 0.5), _iv(0.0, 0.3)]) == 1  # an interval touching 0 no longer shows a gain
+    assert breaking_index([_iv(0.2, 0.5), None, _iv(-0.4, -0.1, -0.2)]) == 2  # turned negative; no data skipped
+    assert breaking_index([_iv(0.2, 0.5), _iv(0.1, 0.3)]) is None  # held at every level
+    assert breaking_index([_iv(None, None), _iv(0.1, 0.3)]) == 0  # one episode: nothing shown
+    assert breaking_index([]) is None
+
+
+STRESS = {"latency": {"key": "comm.latency_ms.mean", "levels": [0, 200, 400], "unit": "ms", "compensation": True,
+                      "set": ["comm.max_age_ms=1500"]},
+          "pose": {"key": "comm.pose_noise", "levels": [{"xy_std_m": 0}, {"xy_std_m": 1}], "x": [0, 1], "unit": "m"}}
+
+
+@pytest.mark.parametrize(("change", "expect"), [
+    ({"latency": {"key": "comm.latency_ms.mean", "levels": [0], "unit": "ms"}}, "stress.latency.levels: expected a "
+     "list of at least two levels"),
+    ({"pose": {"key": "comm.pose_noise", "levels": [{"xy_std_m": 0}, {"xy_std_m": 1}], "unit": "m"}},
+     "stress.pose.x: expected 2 numbers"),
+    ({"latency": {"key": "comm.latency_ms.mean", "levels": [200, 0], "unit": "ms"}}, "stress.latency.x: expected "
+     "increasing numbers"),
+    ({"latency": {"key": "comm.latency_ms.mean", "levels": [0, 1], "unit": "ms", "set": ["nope"]}},
+     "stress.latency.set: expected a list of KEY.PATH=VALUE"),
+    ({"latency": {"key": "comm.latency_ms.mean", "levels": [0, 1], "unit": "ms", "speed": 1}},
+     "stress.latency.speed: unknown key"),
+])
+def test_a_malformed_stress_is_one_line_naming_the_key(tmp_path: Path, change: dict, expect: str) -> None:
+    from v2vsim.config import ConfigError
+
+    with pytest.raises(ConfigError, match=expect.replace("[", r"\[").replace(".", r"\.")):
+        load_catalogue(_catalogue(tmp_path, stress=change))
+
+
+def _args(tmp_path: Path, **kw: object) -> BenchmarkArgs:
+    cat = _catalogue(tmp_path, stress=STRESS, methods=["oracle", "none", "late", "v2vnet", "cobevt"],
+                     profiles={"quick": {"seeds": 3, "levels": [2]}})
+    return BenchmarkArgs(out=tmp_path / "bench", catalogue=cat, bootstrap=300, stresses=("latency",), **kw)
+
+
+def test_a_stress_study_runs_the_references_once_and_compensation_only_where_a_method_has_it(tmp_path: Path) -> None:
+    args = _args(tmp_path)
+    plan = dict(family_sweeps(args, load_catalogue(args.catalogue)))
+    assert list(plan) == ["pullout/reference", "pullout/latency", "pullout/latency+comp"]
+    ref, lat, comp = plan.values()
+    offsets = "traffic.hidden_foe.arrival_offset_s=[0, 0],[2, 2]"
+    assert ref.grid == ("control.method=oracle,none", offsets) and ref.overrides == (DRIVING_ONLY,)
+    assert lat.grid == ("control.method=late,v2vnet,cobevt", offsets, "comm.latency_ms.mean=0,200,400")
+    assert lat.overrides == (DRIVING_ONLY, "comm.max_age_ms=1500")
+    # late fusion's compensation is model-free; the shipped LiDAR zoo has an extrapolation module for cobevt only
+    assert comp.grid[0] == "control.method=late,cobevt"
+    assert comp.overrides == (DRIVING_ONLY, "comm.max_age_ms=1500", "comm.compensation=true")
+    assert ref.out == args.out / "families" / "pullout" / "reference"
+
+
+def _score(method: str, latency: int, comp: bool) -> float:
+    """none collides in every episode (0.3); late helps up to 200 ms, not at 400 (as none); cobevt helps at 0 only;
+    compensated late helps at every level; compensated cobevt as cobevt."""
+    if method == "oracle":
+        return 1.0
+    helps = {"none": -1, "late": 400 if comp else 200, "v2vnet": 400, "cobevt": 0}[method]
+    return 1.0 if latency <= helps else 0.3
+
+
+def _metrics(spec: RunSpec) -> dict:
+    over = dict(o.split("=", 1) for o in spec.request["overrides"])
+    method = over["control.method"]
+    latency, comp = int(over.get("comm.latency_ms.mean", 0)), over.get("comm.compensation") == "true"
+    score = _score(method, latency, comp)
+    row = "none" if method == "oracle" else method
+    ok = score == 1.0
+    return {"status": "complete", "frames": 5,
+            "methods": {row: {"iou_vehicle": 0.5 if ok and row != "none" else 0.2, "ap50": 0.6 if ok else 0.3}},
+            "driving": {"method": method, "total": {
+                "collisions": int(not ok), "driving_score": score, "success": ok, "route_completion": 1.0 if ok
+                else 0.5, "finished_at_s": 10.0 if ok else None, "infractions": {"collision_vehicle": int(not ok)}}}}
+
+
+class StressJob(FakeJob):
+    def __init__(self, spec: RunSpec) -> None:
+        (spec.out / runs_mod.LOG).write_text("v2vsim: done\n")
+        spec.out.joinpath("metrics.json").write_text(json.dumps(_metrics(spec)))
+
+
+def test_a_stress_study_finds_each_methods_breaking_point(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(runs_mod.time, "sleep", lambda s: None)
+    args = _args(tmp_path)
+    started: list[RunSpec] = []
+
+    def start(spec: RunSpec) -> StressJob:
+        started.append(spec)
+        return StressJob(spec)
+
+    assert benchmark(args, start=start, stream=io.StringIO()) == 0
+    # references 2 methods x 2 configurations x 3 seeds; 3 methods x 3 levels x 6; late and cobevt compensated
+    assert len(started) == 12 + 54 + 36
+    doc = json.loads((args.out / "breaking_points.json").read_text())
+    [lat] = doc["stresses"]
+    assert lat["x"] == [0, 200, 400] and lat["key"] == "comm.latency_ms.mean"
+    got = {(c["scope"], c["method"]): c for c in lat["curves"]}
+    assert set(got) == {(s, m) for s in ("pullout", "overall") for m in ("late", "v2vnet", "cobevt", "late+comp",
+                                                                          "cobevt+comp")}
+    brk = {m: got[("overall", m)]["breaking"]["driving_score"]["x"] for m in ("late", "v2vnet", "cobevt",
+                                                                               "late+comp", "cobevt+comp")}
+    assert brk == {"late": 400, "v2vnet": None, "cobevt": 200, "late+comp": None, "cobevt+comp": 200}
+    assert got[("overall", "late")]["breaking"]["iou_vehicle"]["x"] == 400  # perception breaks with the driving
+    lv = got[("overall", "late")]["levels"]
+    assert [v["driving_score"]["minus_none"]["mean"] for v in lv] == pytest.approx([0.7, 0.7, 0.0])
+    assert all(v["driving_score"]["n"] == 6 for v in lv)
+    md = (args.out / "breaking_points.md").read_text()
+    assert "| overall | v2vnet | > 400 (never) |" in md and "| overall | cobevt | 200 |" in md
+    assert (args.out / "stress_latency.png").stat().st_size > 5000
+    assert not (args.out / "leaderboard.md").exists()
