@@ -48,7 +48,7 @@ from v2vsim.perception.checks import check_scenario
 from v2vsim.perception.fleet import fleet_types
 from v2vsim.run_outcome import ego_statuses, write_failure_metrics
 from v2vsim.sensors.sensing import ego_ids
-from v2vsim.traffic.base import cav_id
+from v2vsim.traffic.penetration import connected_cavs
 
 STOP_GRACE_S = 5.0  # after SIGINT, children get this long to write their files before SIGKILL
 EGO_NOTICE_S = 3.0  # after the driver dies mid-run, the egos get this long to notice it and say so themselves
@@ -118,7 +118,7 @@ def run(sc: Scenario, out: Path, frames: int | None = None, remote_cavs: tuple[s
         raise ConfigError(f"--frames {frames}: expected a number of frames >= 1")
     frames = frames or sc.frames
     run_id = run_id or uuid.uuid4().hex[:8]
-    cavs = [cav_id(i) for i in range(sc.cavs.count)]
+    cavs = connected_cavs(sc)  # every placed vehicle, unless cavs.penetration leaves some unconnected
     egos = ego_ids(sc, cavs)
     unknown = [c for c in remote_cavs if c not in cavs]
     if unknown:  # it would print an agent command that cannot join and run every CAV here
@@ -141,6 +141,9 @@ def run(sc: Scenario, out: Path, frames: int | None = None, remote_cavs: tuple[s
     procs = ["driver.main"] + [f"cav.{c}" for c in cavs if c not in remote_cavs] + [f"ego.{e}" for e in egos]
     overrides = _overrides_for_children(sc)
     runnable = runnable_methods(sc)
+    if sc.cavs.penetration is not None:
+        print(f"v2vsim: penetration {sc.cavs.penetration:g}: connected {', '.join(cavs)} of {sc.cavs.count} placed "
+              "vehicles (the others are driven by SUMO and send nothing)", file=sys.stderr)
     print(f"v2vsim: run {run_id}: {len(cavs)} CAVs, ego {', '.join(egos)}, {frames} frames, "
           f"methods {', '.join(runnable)} -> {out}", file=sys.stderr)
     dropped = [m for m in sc.perception.methods if m not in runnable]

@@ -145,3 +145,27 @@ def test_every_cav_driven_gives_each_a_driving_block_and_the_run_the_fleet(tmp_p
     assert d["total"]["fleet"]["driven"] == 2 and d["total"]["fleet"]["collisions"] == 0
     report = (out / "report.md").read_text()
     assert "| cav0 | " in report and "| cav1 | " in report and "Fleet: 2 driven vehicles" in report
+
+
+def test_a_penetration_of_0_sends_nothing_and_drives_as_none_bit_for_bit(tmp_path: Path) -> None:
+    """issue 54 item 3: with cavs.penetration 0 the placed vehicles besides the ego are SUMO's, silent: no V2V
+    message, and late fusion (the ego's own detections and nothing else) drives exactly as `none` does in the same
+    traffic with every vehicle connected."""
+    def run(name: str, *sets: str) -> dict:
+        out = tmp_path / name
+        done = subprocess.run([sys.executable, "-m", "v2vsim.cli", "run", OCCLUDED, "--out", str(out), "--frames", "15",
+                               "--set", "seed=2", "--set", "cavs.count=3", "--set", "control.perceive=driving",
+                               "--set", "output.rerun=false", *(x for s in sets for x in ("--set", s))],
+                              capture_output=True, text=True, timeout=400)
+        assert done.returncode == 0, done.stderr[-3000:]
+        return json.loads((out / "metrics.json").read_text())
+
+    zero = run("zero", "cavs.penetration=0", "control.method=late", "control.perceive=all",
+               "perception.methods=[none,late]")
+    none = run("none", "control.method=none")
+    assert zero["penetration"] == {"share": 0.0, "connected": ["cav0"]} and "penetration" not in none
+    assert zero["comm"]["sent"] == 0 and zero["comm"]["bytes_total"] == 0
+    assert zero["driving"]["vehicles"] == none["driving"]["vehicles"] and zero["driving"]["total"] == none["driving"][
+        "total"]
+    for k in ("iou_vehicle", "ap50", "ap70"):  # (scored on what the connected vehicles saw: here the ego alone)
+        assert zero["methods"]["late"][k] == zero["methods"]["none"][k], k

@@ -30,6 +30,9 @@ def _check_cross_fields(sc: Scenario, loader: _Loader) -> None:
     if sc.traffic.hidden_stop is not None and sc.traffic.backend != "sumo":
         loader.fail("traffic.hidden_stop", "needs traffic.backend 'sumo' (it stands in a SUMO lane); allowed "
                     "otherwise: null")
+    if sc.cavs.penetration is not None and sc.traffic.backend != "sumo":
+        loader.fail("cavs.penetration", "needs traffic.backend 'sumo' (the vehicles that are not connected are "
+                    "placed as SUMO vehicles); allowed otherwise: null")
     if len(sc.cavs.movements) > sc.cavs.count:
         loader.fail("cavs.movements", f"{len(sc.cavs.movements)} movements for {sc.cavs.count} CAVs; allowed: at "
                     f"most cavs.count")

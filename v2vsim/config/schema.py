@@ -157,6 +157,9 @@ class CavsConfig:
     # a mixed fleet: groups of CAVs with their own sensor and encoder; a CAV in no group runs perception.modality
     # and perception.encoder (empty: every CAV does, as in every single-modality run)
     fleet: tuple[FleetGroup, ...] = ()
+    # the share of the placed vehicles besides the egos that are connected, drawn per seed (the others are ordinary
+    # SUMO-driven vehicles; v2vsim/traffic/penetration.py); null: all of them
+    penetration: float | None = _f(None, "0..1 or null (every placed vehicle connected)", _prob)
 
 
 @dataclass(frozen=True)

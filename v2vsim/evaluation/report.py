@@ -16,6 +16,7 @@ from v2vsim.evaluation.run_plots import distance_bins, plot
 from v2vsim.evaluation.status import explain
 from v2vsim.perception.device import device_line
 from v2vsim.perception.precision import resolve as resolve_precision
+from v2vsim.traffic.penetration import connected_cavs
 
 # CoBEVT paper figures (DESIGN.md "Reference figures"): OPV2V camera IoU vehicle/road/lane, LiDAR AP@0.7.
 PAPER_CAMERA = {"none": (37.7, 57.8, 43.7), "fcooper": (52.5, 60.4, 46.5), "attfuse": (51.9, 60.5, 46.2),
@@ -101,13 +102,16 @@ def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: Comm
         # where the ego's models ran (v2vsim.perception.device): asked, used ("cpu" or "cuda:N"), that device's name;
         # the CAVs resolve perception.device on their own hosts
         "device": summary.device,
-        "neighbours_in_range": neighbour_shares(summary.neighbours, sc.cavs.count),
+        "neighbours_in_range": neighbour_shares(summary.neighbours, len(connected_cavs(sc))),
         "ap_sort": sc.evaluation.ap_sort,
         "pipeline": sc.transport.pipeline,
         "wall_s": round(summary.wall_s, 3),
         "timing": summary.timing,  # the ego's own split of a frame (ms), as `v2vsim bench run` prints it
         # closed loop only (an open-loop run's metrics.json is as before)
         **({"driving": summary.driving} if summary.driving is not None else {}),
+        # cavs.penetration: which placed vehicles were connected (the others drove as SUMO's, silent)
+        **({"penetration": {"share": sc.cavs.penetration, "connected": connected_cavs(sc)}}
+           if sc.cavs.penetration is not None else {}),
         # a mixed fleet only: each agent type's CAVs and the feature bytes the ego received from them per frame
         **({"fleet": fleet_json(summary)} if summary.fleet else {}),
     }
@@ -233,7 +237,10 @@ def _method_cbr(method: str, comm: CommStats, comm_by_kind: dict[str, CommStats]
 def report_md(doc: dict, summary: RunSummary) -> str:
     sc = summary.scenario
     lines = [f"# v2vsim run: {sc.name}", ""]
-    lines.append(f"Status: **{doc['status']}**, {doc['frames']} frames at {sc.rate_hz:g} Hz, {sc.cavs.count} CAVs, "
+    pen = doc.get("penetration")
+    cavs = (f"{len(pen['connected'])} of {sc.cavs.count} placed vehicles connected (penetration {pen['share']:g}: "
+            f"{', '.join(pen['connected'])})" if pen else f"{sc.cavs.count} CAVs")
+    lines.append(f"Status: **{doc['status']}**, {doc['frames']} frames at {sc.rate_hz:g} Hz, {cavs}, "
                  f"ego {summary.ego}, {sc.perception.modality} / {sc.perception.encoder} ({sc.perception.preset}), "
                  f"clock {sc.transport.clock}, real-time factor {doc['real_time_factor']}.")
     lines += ["", f"**{why}**", ""] if (why := explain(doc["status"])) else [""]

@@ -30,7 +30,7 @@ from v2vsim.study.leaderboard import episodes_of, write_leaderboard
 from v2vsim.study.plan import RunSpec
 from v2vsim.study.runs import Job
 from v2vsim.study.stats import DEFAULT_B
-from v2vsim.study.stress import COMP, REFERENCE, compensable, level_episodes, write_stress
+from v2vsim.study.stress import COMP, REFERENCE, compensable, level_episodes, reference_of, write_stress
 from v2vsim.study.sweep import EXIT_INTERRUPTED, SweepArgs, prepare, sweep
 
 DRIVING_ONLY = "control.perceive=driving"
@@ -90,9 +90,13 @@ def family_sweeps(args: BenchmarkArgs, cat: Catalogue) -> list[tuple[str, SweepA
         if not stresses:
             out.append((f.name, one(f, methods, folder)))
             continue
-        out.append((f"{f.name}/{REFERENCE}", one(f, [m for m in methods if m in (ORACLE, "none")], folder / REFERENCE)))
+        refs = [m for m in methods if m in (ORACLE, "none")]
+        if any(not st.sets for st in stresses):
+            out.append((f"{f.name}/{REFERENCE}", one(f, refs, folder / REFERENCE)))
         coop = [m for m in methods if m not in (ORACLE, "none")]
         for st in stresses:
+            if st.sets:  # its overrides may change the world (cavs.count): references of its own, with them
+                out.append((f"{f.name}/{reference_of(st)}", one(f, refs, folder / reference_of(st), (), st.sets)))
             level = f"{st.level.key}={','.join(st.level.texts)}"
             out.append((f"{f.name}/{st.name}", one(f, coop, folder / st.name, [level], st.sets)))
             comp = compensable(f.scenario, coop, args.overrides) if st.compensation else []
@@ -130,7 +134,7 @@ def benchmark(args: BenchmarkArgs, start: Callable[[RunSpec], Job] | None = None
     docs = {name: json.loads((s.out / "sweep.json").read_text()) for name, s in plan}
     if args.stresses:
         stresses = [cat.stress(n) for n in args.stresses]
-        levels = {st.name: [{f: level_episodes(f, docs[f"{f}/{REFERENCE}"],
+        levels = {st.name: [{f: level_episodes(f, docs[f"{f}/{reference_of(st)}"],
                                                 [(docs[n], n.removeprefix(f"{f}/{st.name}")) for n, _ in plan
                                                  if n in (f"{f}/{st.name}", f"{f}/{st.name}{COMP}")],
                                                 st.level.key, v) for f in meta["families"]}

@@ -3,7 +3,9 @@ catalogue's families driven with the channel degraded step by step along one axi
 loss, pose error), every cooperative method against `none`, and each method's breaking point.
 
     DIR/families/<family>/reference/       oracle and none, once per episode: neither reads a message, so no level
-                                           of any stress can change their drive (measured: docs/benchmark.md)
+                                           of any stress can change their drive (measured: docs/benchmark.md);
+                                           reference-<stress>/ for a stress with overrides of its own (`set`, e.g.
+                                           cavs.count for penetration), run with them
     DIR/families/<family>/<stress>/        every cooperative method x the stress's levels
     DIR/families/<family>/<stress>+comp/   the methods that have compensation (late fusion's model-free one, and
                                            those whose zoo ships an extrapolation module) x the levels, with
@@ -35,7 +37,9 @@ from v2vsim.study.summary import cell
 
 REFERENCE = "reference"
 COMP = "+comp"
-CURVE_MEASURES = {"driving_score": "driving score", "iou_vehicle": "vehicle IoU", "ap50": "AP@0.5"}
+CURVE_MEASURES = {"driving_score": "driving score", "iou_vehicle": "vehicle IoU", "ap50": "AP@0.5",
+                  "success": "success rate", "collision": "collision rate"}
+BREAKING = ("driving_score", "iou_vehicle", "ap50")  # the measures a breaking point is given for
 
 Episodes = dict[Episode, dict[str, dict[str, float | None]]]
 
@@ -68,6 +72,11 @@ def breaking_index(diffs: Sequence[Interval | None]) -> int | None:
         if iv.lo is None or iv.lo <= 0:
             return i
     return None
+
+
+def reference_of(s: Stress) -> str:
+    """The folder of the oracle and none runs a stress is compared with (module doc)."""
+    return f"{REFERENCE}-{s.name}" if s.sets else REFERENCE
 
 
 def compensable(scenario: Path, methods: Sequence[str], overrides: Sequence[str] = ()) -> list[str]:
@@ -158,7 +167,7 @@ def breaking_md(stresses: Sequence[Stress], by_stress: dict[str, list[Curve]], m
                   "| scope | method | driving breaks at | its score - none there | IoU breaks at | AP@0.5 breaks at |",
                   "|---|---|---|---|---|---|"]
         for c in sorted(cs, key=lambda c: (c.scope == ALL, c.scope, c.method), reverse=False):
-            d, iou, ap = (c.breaking(k) for k in CURVE_MEASURES)
+            d, iou, ap = (c.breaking(k) for k in BREAKING)
             lines.append(f"| {c.scope} | {c.method} | {d.text(s)} | {cell(d.diff, True)} | {iou.text(s)} | "
                          f"{ap.text(s)} |")
         lines += ["", f"Overall, driving score - none per level ({', '.join(_num(x) for x in s.x)} {s.unit}):", "",
@@ -179,8 +188,8 @@ def write_csv(path: Path, stresses: Sequence[Stress], by_stress: dict[str, list[
         for s in stresses:
             for c in by_stress.get(s.name, []):
                 for k in CURVE_MEASURES:
-                    bp = c.breaking(k)
-                    brk = "" if bp.index is None else s.x[bp.index]
+                    bp = c.breaking(k) if k in BREAKING else None
+                    brk = "" if bp is None or bp.index is None else s.x[bp.index]
                     for i, v in enumerate(c.diffs[k]):
                         iv = v.diff
                         w.writerow([s.name, c.scope, c.method, s.level.texts[i], s.x[i], k,
@@ -200,7 +209,7 @@ def to_json(stresses: Sequence[Stress], by_stress: dict[str, list[Curve]], meta:
                 "method": c.method, "scope": c.scope,
                 "breaking": {k: {"index": (bp := c.breaking(k)).index,
                                  "x": None if bp.index is None else s.x[bp.index],
-                                 "diff": bp.diff.to_json() if bp.diff else None} for k in CURVE_MEASURES},
+                                 "diff": bp.diff.to_json() if bp.diff else None} for k in BREAKING},
                 "levels": [{"x": s.x[i], **{k: {"mean": c.means[k][i], "n": c.diffs[k][i].n,
                                                 "minus_none": c.diffs[k][i].diff.to_json() if c.diffs[k][i].diff
                                                 else None} for k in CURVE_MEASURES}}
@@ -210,16 +219,16 @@ def to_json(stresses: Sequence[Stress], by_stress: dict[str, list[Curve]], meta:
 
 
 def plot(out: Path, s: Stress, cs: Sequence[Curve], none_means: dict[str, float | None]) -> Path:
-    """stress_<name>.png: overall driving score and vehicle IoU against the level, one line per method with its
-    interval (method - none + none's mean), none's mean dashed."""
+    """stress_<name>.png: overall driving score, success rate and vehicle IoU against the level, one line per method
+    with its interval (that of method - none, placed on the method's mean), none's mean dashed."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     overall = [c for c in cs if c.scope == ALL]
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
-    for ax, k in zip(axes, ("driving_score", "iou_vehicle"), strict=True):
+    fig, axes = plt.subplots(1, 3, figsize=(14, 3.8))
+    for ax, k in zip(axes, ("driving_score", "success", "iou_vehicle"), strict=True):
         base = none_means.get(k)
         for c in overall:
             xs, ys, lo, hi = [], [], [], []

@@ -42,6 +42,7 @@ import sumolib
 
 from v2vsim.config import Scenario
 from v2vsim.traffic.base import BackendBase, cav_id
+from v2vsim.traffic.penetration import connected_cavs
 from v2vsim.traffic.static_map import load_sumo_map
 from v2vsim.traffic.sumo_control import DrivenVehicles, control_args
 from v2vsim.traffic.sumo_hidden_foe import FoePlan, insert_hidden_foe
@@ -116,6 +117,7 @@ class SumoBackend(BackendBase):
         self._frame = 0
         self._known: list[str] = []  # subscribed vehicle ids in departure order
         self._cav_ids: tuple[str, ...] = tuple(cav_id(i) for i in range(scenario.cavs.count))
+        self._connected = frozenset(connected_cavs(scenario))
         self._rng = np.random.default_rng(scenario.seed)
         self._bg_next_t = 0.0
         self._bg_horizon = 0.0
@@ -383,9 +385,9 @@ class SumoBackend(BackendBase):
     def _state(self, ls: ModuleType) -> WorldState:
         tc = ls.constants
         results = ls.vehicle.getAllSubscriptionResults()
-        cav_set = set(self._cav_ids)
+        cav_set = self._connected  # a placed vehicle cavs.penetration left unconnected is an ordinary vehicle
         order = [c for c in self._cav_ids if c in results]
-        order += [v for v in self._known if v in results and v not in cav_set]
+        order += [v for v in self._known if v in results and v not in self._cav_ids]
         self._known = [v for v in self._known if v in results]  # forget vehicles that left
         actors = []
         for vid in order:

@@ -57,19 +57,23 @@ def test_a_malformed_stress_is_one_line_naming_the_key(tmp_path: Path, change: d
         load_catalogue(_catalogue(tmp_path, stress=change))
 
 
-def _args(tmp_path: Path, **kw: object) -> BenchmarkArgs:
+def _args(tmp_path: Path, stresses: tuple[str, ...] = ("latency",)) -> BenchmarkArgs:
     cat = _catalogue(tmp_path, stress=STRESS, methods=["oracle", "none", "late", "v2vnet", "cobevt"],
                      profiles={"quick": {"seeds": 3, "levels": [2]}})
-    return BenchmarkArgs(out=tmp_path / "bench", catalogue=cat, bootstrap=300, stresses=("latency",), **kw)
+    return BenchmarkArgs(out=tmp_path / "bench", catalogue=cat, bootstrap=300, stresses=stresses)
 
 
 def test_a_stress_study_runs_the_references_once_and_compensation_only_where_a_method_has_it(tmp_path: Path) -> None:
-    args = _args(tmp_path)
+    args = _args(tmp_path, stresses=("latency", "pose"))
     plan = dict(family_sweeps(args, load_catalogue(args.catalogue)))
-    assert list(plan) == ["pullout/reference", "pullout/latency", "pullout/latency+comp"]
-    ref, lat, comp = plan.values()
+    assert list(plan) == ["pullout/reference", "pullout/reference-latency", "pullout/latency",
+                          "pullout/latency+comp", "pullout/pose"]
+    ref, ref_lat, lat, comp, pose = plan.values()
     offsets = "traffic.hidden_foe.arrival_offset_s=[0, 0],[2, 2]"
     assert ref.grid == ("control.method=oracle,none", offsets) and ref.overrides == (DRIVING_ONLY,)
+    # a stress with overrides of its own has references run with them (they may change the world: cavs.count)
+    assert ref_lat.grid == ref.grid and ref_lat.overrides == (DRIVING_ONLY, "comm.max_age_ms=1500")
+    assert pose.grid[-1].startswith("comm.pose_noise={xy_std_m: 0},{xy_std_m: 1}") and pose.overrides == (DRIVING_ONLY,)
     assert lat.grid == ("control.method=late,v2vnet,cobevt", offsets, "comm.latency_ms.mean=0,200,400")
     assert lat.overrides == (DRIVING_ONLY, "comm.max_age_ms=1500")
     # late fusion's compensation is model-free; the shipped LiDAR zoo has an extrapolation module for cobevt only
