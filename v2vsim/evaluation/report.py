@@ -176,7 +176,9 @@ def driving_md(d: dict | None) -> list[str]:
         return "-" if v is None else (f"{v:.2f}{unit}" if isinstance(v, float) else f"{v}{unit}")
 
     lines = ["", "## Driving (closed loop)", "",
-             f"The driven vehicle planned on **{d['method']}** ({d['planner']} planner); the other methods above were "
+             (f"The driven vehicles ({', '.join(d['driven'])}) each planned on **{d['method']}** on what it perceived "
+              "and received" if len(d.get("driven", ())) > 1 else f"The driven vehicle planned on **{d['method']}**")
+             + f" ({d['planner']} planner); the other methods above were "
              f"scored open loop on the same frames. A plan made on frame k's perception was applied after frame "
              f"k + {d['actuation_delay_frames']} ({d['actuation_delay_ms']:g} ms later). Background drivers ignore a "
              f"vehicle already in the junction with probability {d['background_ignore_junction_foes']:g}. SSM "
