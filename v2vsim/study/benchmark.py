@@ -116,11 +116,14 @@ def benchmark(args: BenchmarkArgs, start: Callable[[RunSpec], Job] | None = None
     check_output_dir(args.out, "--out")
     designs = [prepare(s) for _, s in plan]  # every family's every point validated before anything runs
     total = sum(len(d.specs) for d in designs)
-    print(f"v2vsim benchmark: profile {args.profile}, {len(plan)} famil{'y' if len(plan) == 1 else 'ies'}, "
+    nf = len({n.split("/")[0] for n, _ in plan})
+    parts = f" ({len(plan)} sweeps: stress {', '.join(args.stresses)})" if args.stresses else ""
+    print(f"v2vsim benchmark: profile {args.profile}, {nf} famil{'y' if nf == 1 else 'ies'}{parts}, "
           f"{total} runs ({args.split} seeds) -> {args.out}", file=stream)
     code = 0
     for i, ((name, s), d) in enumerate(zip(plan, designs, strict=True), 1):
-        print(f"v2vsim benchmark: family {i}/{len(plan)} {name}: {len(d.points)} points x {len(d.seeds)} seeds",
+        print(f"v2vsim benchmark: {'sweep' if args.stresses else 'family'} {i}/{len(plan)} {name}: {len(d.points)} "
+              f"points x {len(d.seeds)} seeds",
               file=stream)
         rc = sweep(s, start=start, stream=stream)
         if rc == EXIT_INTERRUPTED:
