@@ -14,6 +14,7 @@ import json
 import sys
 import threading
 import time
+from collections import Counter
 
 import torch
 
@@ -24,9 +25,11 @@ from agents.timing import StageTimer, write_timing
 from agents.worlds import WorldQueue, world_window
 from v2vsim.comm.codec import Message, encode
 from v2vsim.comm.control import DRIVER
+from v2vsim.comm.misbehaviour import Sent, active, tell
 from v2vsim.comm.share import feature_message
-from v2vsim.config import neighbours_silent
-from v2vsim.evaluation.gt import visible_actor_ids
+from v2vsim.config import Scenario, neighbours_silent
+from v2vsim.config.schema import Lie
+from v2vsim.evaluation.gt import gt_boxes, visible_actor_ids
 from v2vsim.perception.aligned import build_cav_encoder, space_label
 from v2vsim.perception.build import (
     build_compressor,
@@ -86,6 +89,7 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
     gone_at: float | None = None  # when the driver's token was seen gone without a done
     frame = -1
     timer = StageTimer()
+    told: Counter[str] = Counter()  # misbehaviour: the frames each lie was told
     try:
         while True:
             now = time.monotonic()
@@ -137,14 +141,19 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
                 continue
             with timer.stage("encoding"):
                 feats = encode_features(encoder, sf, sc, precision, modality)
-            stamp = {"run_id": args.run_id, "sender_id": me, "frame": world.frame, "capture_time": world.time,
-                     "sender_pose": actor.pose.as_tuple(), "compression": sc.comm.compression}
             confidence = maps = boxes = None
             if single is not None:
                 with timer.stage("decoding"):  # its own outputs: decoder + heads
                     maps, boxes = late_outputs(single, feats, boxes=late, precision=precision)
                     if share < 1.0:
                         confidence = pooled_confidence(maps[0], feats.shape[-1])
+            pose = actor.pose.as_tuple()
+            lies = active(sc.misbehaviour, me, world.frame)
+            if lies:  # an attacked run (misbehaviour): what it sends is false, its own perception stays honest
+                sent = lie(Sent(feats, pose, maps, boxes), lies, world, me, seen_ids, sc, told)
+                feats, pose, maps, boxes = sent.features, sent.pose, sent.maps, sent.boxes
+            stamp = {"run_id": args.run_id, "sender_id": me, "frame": world.frame, "capture_time": world.time,
+                     "sender_pose": pose, "compression": sc.comm.compression}
             with timer.stage("comm"):
                 labelled = {**stamp, "space": space} if space else stamp
                 bus.put("features", encode(feature_message(compress(compressor, feats), confidence, share, labelled,
@@ -162,7 +171,21 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
                     bus.put("scan", _scan(world, actor.pose, sf, scene, args))
             timer.frame_done()
     finally:
+        if told:
+            print(f"v2vsim-cav {me}: lied on purpose (misbehaviour): "
+                  + ", ".join(f"{k} in {n} frames" for k, n in sorted(told.items())), file=sys.stderr, flush=True)
         write_timing(args.out, f"cav.{me}", timer, bus.control_rejections())
+
+
+def lie(sent: Sent, lies: list[Lie], world: WorldState, me: str, seen_ids: set[str], sc: Scenario,
+        told: Counter[str]) -> Sent:
+    """`sent` after this frame's lies (v2vsim/comm/misbehaviour.py); `told` counts the frames each kind was told."""
+    boxes, ids = gt_boxes(world, me, sc.bev)  # every actor on its grid, in its frame (the liar knows the truth)
+    targets = {i: b for b, i in zip(boxes, ids, strict=True)}
+    seen = boxes[[i in seen_ids for i in ids]] if len(ids) else boxes
+    out, kinds = tell(sent, lies, sc.bev.size_m, targets, seen)
+    told.update(kinds)
+    return out
 
 
 def done_believed(bus: Bus, frame: int, frames: int) -> bool:

@@ -39,6 +39,7 @@ from agents.progress import ENV as PROGRESS_ENV
 from agents.progress import ProgressDisplay, parse_record
 from v2vsim.comm.identity import Identity, new_run_instance, write_identity_file
 from v2vsim.comm.identity import issue as issue_identities
+from v2vsim.comm.misbehaviour import describe
 from v2vsim.comm.transport import TransportError, free_ports, loopback_endpoint, open_session
 from v2vsim.config import ConfigError, Scenario, check_output_dir
 from v2vsim.control.fleet import merge_fleet
@@ -141,6 +142,8 @@ def run(sc: Scenario, out: Path, frames: int | None = None, remote_cavs: tuple[s
     procs = ["driver.main"] + [f"cav.{c}" for c in cavs if c not in remote_cavs] + [f"ego.{e}" for e in egos]
     overrides = _overrides_for_children(sc)
     runnable = runnable_methods(sc)
+    for lie in sc.misbehaviour:
+        print(f"v2vsim: ATTACKED RUN (misbehaviour): {describe(lie)}", file=sys.stderr)
     if sc.cavs.penetration is not None:
         print(f"v2vsim: penetration {sc.cavs.penetration:g}: connected {', '.join(cavs)} of {sc.cavs.count} placed "
               "vehicles (the others are driven by SUMO and send nothing)", file=sys.stderr)

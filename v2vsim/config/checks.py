@@ -59,6 +59,7 @@ def _check_cross_fields(sc: Scenario, loader: _Loader) -> None:
                     "at a frame depends on wall-clock arrival order, which a replay cannot reproduce")
     _check_egos(sc, loader)
     _check_fleet(sc, loader)
+    _check_lies(sc, loader)
     _check_control(sc, loader)
     _check_key_file(sc, loader)
     for name in ("listen", "connect"):
@@ -84,6 +85,24 @@ def _check_egos(sc: Scenario, loader: _Loader) -> None:
                         f"allowed: {allowed}")
         if ego in sc.cavs.ego[:i]:
             loader.fail(f"cavs.ego[{i}]", f"{ego!r} is listed twice; each ego once")
+
+
+def _check_lies(sc: Scenario, loader: _Loader) -> None:
+    """A liar must be a CAV of the run (a typo would make an attacked run silently clean)."""
+    ids, allowed = _cav_ids(sc)
+    ego = sc.cavs.ego
+    egos = ids[:1] if ego == "first" else ids if ego == "all" else list(ego)
+    for i, lie in enumerate(sc.misbehaviour):
+        for j, c in enumerate(lie.cavs):
+            if c not in ids:
+                loader.fail(f"misbehaviour[{i}].cavs[{j}]", f"{c!r} is not a CAV of this run (cavs.count is "
+                            f"{sc.cavs.count}); allowed: {allowed}")
+            if c in egos:
+                loader.fail(f"misbehaviour[{i}].cavs[{j}]", f"{c!r} is an ego of this run: an ego fuses its own map, "
+                            "so it would lie to itself; allowed: the CAVs that are not egos")
+        if lie.kind == "remove_vehicle" and not lie.targets:
+            loader.fail(f"misbehaviour[{i}].targets", "empty: remove_vehicle needs the ids of the actors it hides "
+                        "(e.g. [foe0])")
 
 
 def _check_fleet(sc: Scenario, loader: _Loader) -> None:

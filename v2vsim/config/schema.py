@@ -4,6 +4,7 @@ metadata says what is allowed; the constants they use."""
 from __future__ import annotations
 
 import dataclasses
+import math
 import re
 import typing
 from dataclasses import dataclass, field
@@ -298,6 +299,24 @@ class CommConfig:
 
 
 @dataclass(frozen=True)
+class Lie:
+    """A misbehaviour told on purpose by trusted CAVs (v2vsim/comm/misbehaviour.py, docs/scenario.md
+    "misbehaviour"): who, from which frame, and how."""
+
+    cavs: tuple[str, ...] = _f((), "a non-empty list of CAV ids of this run (the liars)", lambda v: len(v) > 0)
+    kind: Literal["scale", "flip", "zero", "pose", "remove_vehicle", "add_vehicle"] = "scale"
+    from_frame: int = _f(0, ">= 0 (the first frame it lies in)", _nonneg)
+    factor: float = _f(8.0, "a finite number (scale: the features times it; negative flips their sign)",
+                       lambda v: math.isfinite(v))
+    shift_m: tuple[float, float] = _f((0.0, 0.0), "[forward, left] metres (pose: the claimed position moved)",
+                                      lambda v: all(math.isfinite(x) for x in v))
+    rotate_deg: float = _f(0.0, "-180..180 (pose: the claimed heading turned)", lambda v: -180 <= v <= 180)
+    targets: tuple[str, ...] = ("foe0",)  # remove_vehicle: the actors it hides (the hidden foe by default)
+    at_m: tuple[float, float] = _f((10.0, 0.0), "[forward, left] metres in the liar's frame (add_vehicle: the "
+                                   "phantom car's centre)", lambda v: all(math.isfinite(x) for x in v))
+
+
+@dataclass(frozen=True)
 class TransportConfig:
     mode: Literal["peer", "client"] = "peer"  # peer: a loopback mesh; client: through transport.connect routers
     connect: tuple[str, ...] = _f((), "zenoh endpoints such as tcp/127.0.0.1:7447")
@@ -425,6 +444,7 @@ class Scenario:
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     control: ControlConfig | None = None  # closed loop when present (docs/scenario.md "control")
+    misbehaviour: tuple[Lie, ...] = ()  # CAVs that lie on purpose (an attacked run; docs/scenario.md "misbehaviour")
     source: str = field(default="<defaults>", metadata={"internal": True})  # the YAML file
     overrides: tuple[str, ...] = field(default=(), metadata={"internal": True})  # --set, for child processes
 

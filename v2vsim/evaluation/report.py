@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from v2vsim.comm.misbehaviour import describe
 from v2vsim.comm.stats import CommStats
 from v2vsim.comm.wire_spec import message_kind
 from v2vsim.config import Scenario
@@ -109,6 +111,8 @@ def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: Comm
         "timing": summary.timing,  # the ego's own split of a frame (ms), as `v2vsim bench run` prints it
         # closed loop only (an open-loop run's metrics.json is as before)
         **({"driving": summary.driving} if summary.driving is not None else {}),
+        # misbehaviour: an attacked run says so in its metrics (v2vsim/comm/misbehaviour.py)
+        **({"misbehaviour": [dataclasses.asdict(lie) for lie in sc.misbehaviour]} if sc.misbehaviour else {}),
         # cavs.penetration: which placed vehicles were connected (the others drove as SUMO's, silent)
         **({"penetration": {"share": sc.cavs.penetration, "connected": connected_cavs(sc)}}
            if sc.cavs.penetration is not None else {}),
@@ -246,6 +250,9 @@ def report_md(doc: dict, summary: RunSummary) -> str:
                  f"ego {summary.ego}, {sc.perception.modality} / {sc.perception.encoder} ({sc.perception.preset}), "
                  f"clock {sc.transport.clock}, real-time factor {doc['real_time_factor']}.")
     lines += ["", f"**{why}**", ""] if (why := explain(doc["status"])) else [""]
+    if sc.misbehaviour:  # nobody should mistake an attacked run for a clean one
+        lines += ["**Attacked run** (`misbehaviour`): " + "; ".join(describe(lie) for lie in sc.misbehaviour)
+                  + ". The scores below are under attack.", ""]
     lines += [TRUST_LINES[sc.comm.auth.mode], ""]
     if summary.device is not None:
         lines += [device_line(summary.device), ""]

@@ -22,6 +22,7 @@ import numpy as np
 import rerun as rr
 
 from v2vsim.comm.inbox import LinkEvent
+from v2vsim.comm.misbehaviour import liars
 from v2vsim.config import Scenario
 from v2vsim.control.pilot import PilotStep
 from v2vsim.perception.fuse import FusionInputs, Prediction
@@ -47,6 +48,7 @@ class Recorder:
         self.methods = methods
         self.cavs = sorted(cavs)
         self.types = types or {}
+        self.liars = liars(sc.misbehaviour)  # a lying CAV is marked (misbehaviour)
         self.ego = ego
         self.rig = camera_rig(sc.sensors.cameras)
         self.delivered: dict[str, list[int]] = {}  # sender -> [delivered, events]
@@ -114,7 +116,8 @@ class Recorder:
                                          level=rr.TextLogLevel.INFO))
 
     def _label(self, cav: str) -> str:
-        return f"{cav} {self.types[cav]}" if cav in self.types else cav
+        label = f"{cav} {self.types[cav]}" if cav in self.types else cav
+        return f"{label} LIES: {self.liars[cav]}" if cav in self.liars else label
 
     def _log_world(self, world: WorldState, links: list[LinkEvent], scans: dict[str, Scan]) -> None:
         rec = self.rec
