@@ -48,6 +48,16 @@ def test_a_closed_loop_run_drives_reports_and_repeats_itself(tmp_path: Path) -> 
     assert not timing.get("control_rejections"), timing
 
 
+def _drive(out: Path, frames: int, *sets: str) -> tuple[dict, str]:
+    """`v2vsim run` of the occluded T-junction (seed 2, two CAVs, no recording) with `sets`; its metrics and stderr."""
+    done = subprocess.run([sys.executable, "-m", "v2vsim.cli", "run", OCCLUDED, "--out", str(out), "--frames",
+                           str(frames), *(x for s in ("seed=2", "cavs.count=2", "output.rerun=false", *sets)
+                                          for x in ("--set", s))],
+                          capture_output=True, text=True, timeout=400)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return json.loads((out / "metrics.json").read_text()), done.stderr
+
+
 def _stopped_run(tmp_path: Path, stop: str) -> tuple[dict, str, str]:
     """A closed-loop run (CoBEVT driving, 100 frames) stopped at frame 12 by `stop`: "ctrl-c" (SIGINT to the runner,
     as a terminal's Ctrl-C) or "kill-driver" (SIGKILL of the simulator driver). Its metrics.json, report.md and
@@ -100,13 +110,7 @@ def test_a_route_completed_early_ends_the_run_complete_with_exit_0(tmp_path: Pat
     "the simulator driver exited with code 1". Now it arrives, its ego writes a complete run with its score, and the
     run stops there."""
     out = tmp_path / "run"
-    done = subprocess.run([sys.executable, "-m", "v2vsim.cli", "run", OCCLUDED, "--out", str(out), "--frames", "100",
-                           "--set", "seed=2", "--set", "cavs.count=2", "--set", "control.method=oracle",
-                           "--set", "control.route_m=15", "--set", "control.perceive=driving",
-                           "--set", "output.rerun=false"],
-                          capture_output=True, text=True, timeout=400)
-    assert done.returncode == 0, done.stderr[-3000:]
-    m = json.loads((out / "metrics.json").read_text())
+    m, stderr = _drive(out, 100, "control.method=oracle", "control.route_m=15", "control.perceive=driving")
     assert m["status"] == "complete" and m["frames"] < 100, (m["status"], m["frames"])
     v = m["driving"]["vehicles"]["cav0"]
     assert v["route_completion"] == 1.0 and v["success"] is True and v["driving_score"] == 1.0, v
@@ -114,8 +118,8 @@ def test_a_route_completed_early_ends_the_run_complete_with_exit_0(tmp_path: Pat
     assert v["route_m"] == 15 and 15 <= v["progress_m"] < 17
     assert v["finished_at_s"] == pytest.approx((m["frames"] - 1) / 10)  # its last frame
     assert m["driving"]["total"]["successes"] == 1 and m["driving"]["total"]["driving_score"] == 1.0
-    assert "route completed at frame" in done.stderr and "every driven vehicle completed its route" in done.stderr
-    assert "error" not in done.stderr.lower(), done.stderr[-3000:]
+    assert "route completed at frame" in stderr and "every driven vehicle completed its route" in stderr
+    assert "error" not in stderr.lower(), stderr[-3000:]
     assert "| cav0 | 1.00 | 1.00 | yes |" in (out / "report.md").read_text()
     # control.perceive driving, oracle: the ego computes `none` alone, and cav1 (no ego) neither encodes nor sends
     assert list(m["methods"]) == ["none"] and m["comm"]["sent"] == 0
@@ -128,13 +132,7 @@ def test_every_cav_driven_gives_each_a_driving_block_and_the_run_the_fleet(tmp_p
     """issue 54 item 2: with cavs.ego=all each ego wrote only its own vehicle; the run's own metrics.json and report
     now hold every driven CAV's entry and score, and the fleet's totals."""
     out = tmp_path / "run"
-    done = subprocess.run([sys.executable, "-m", "v2vsim.cli", "run", OCCLUDED, "--out", str(out), "--frames", "15",
-                           "--set", "seed=2", "--set", "cavs.count=2", "--set", "cavs.ego=all",
-                           "--set", "control.method=oracle", "--set", "control.perceive=driving",
-                           "--set", "output.rerun=false"],
-                          capture_output=True, text=True, timeout=400)
-    assert done.returncode == 0, done.stderr[-3000:]
-    m = json.loads((out / "metrics.json").read_text())
+    m, _ = _drive(out, 15, "cavs.ego=all", "control.method=oracle", "control.perceive=driving")
     d = m["driving"]
     assert d["driven"] == ["cav0", "cav1"] and set(d["vehicles"]) == {"cav0", "cav1"}
     own1 = json.loads((out / "ego_cav1" / "metrics.json").read_text())["driving"]
@@ -151,18 +149,9 @@ def test_a_penetration_of_0_sends_nothing_and_drives_as_none_bit_for_bit(tmp_pat
     """issue 54 item 3: with cavs.penetration 0 the placed vehicles besides the ego are SUMO's, silent: no V2V
     message, and late fusion (the ego's own detections and nothing else) drives exactly as `none` does in the same
     traffic with every vehicle connected."""
-    def run(name: str, *sets: str) -> dict:
-        out = tmp_path / name
-        done = subprocess.run([sys.executable, "-m", "v2vsim.cli", "run", OCCLUDED, "--out", str(out), "--frames", "15",
-                               "--set", "seed=2", "--set", "cavs.count=3", "--set", "control.perceive=driving",
-                               "--set", "output.rerun=false", *(x for s in sets for x in ("--set", s))],
-                              capture_output=True, text=True, timeout=400)
-        assert done.returncode == 0, done.stderr[-3000:]
-        return json.loads((out / "metrics.json").read_text())
-
-    zero = run("zero", "cavs.penetration=0", "control.method=late", "control.perceive=all",
-               "perception.methods=[none,late]")
-    none = run("none", "control.method=none")
+    zero, _ = _drive(tmp_path / "zero", 15, "cavs.count=3", "cavs.penetration=0", "control.method=late",
+                     "perception.methods=[none,late]")
+    none, _ = _drive(tmp_path / "none", 15, "cavs.count=3", "control.method=none", "control.perceive=driving")
     assert zero["penetration"] == {"share": 0.0, "connected": ["cav0"]} and "penetration" not in none
     assert zero["comm"]["sent"] == 0 and zero["comm"]["bytes_total"] == 0
     assert zero["driving"]["vehicles"] == none["driving"]["vehicles"] and zero["driving"]["total"] == none["driving"][
