@@ -54,6 +54,8 @@ class BreakingPoint:
     diff: Interval | None  # method - none at that level (at the last level when it never broke)
 
     def text(self, s: Stress) -> str:
+        if self.diff is not None and self.diff.lo is None:
+            return "- (no interval: one episode)"
         if self.index is None:
             return f"> {_num(s.x[-1])} (never)"
         return f"{_num(s.x[self.index])}" + (" (no gain at the mildest)" if self.index == 0 else "")
