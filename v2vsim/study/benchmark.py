@@ -75,6 +75,10 @@ def family_sweeps(args: BenchmarkArgs, cat: Catalogue) -> list[tuple[str, SweepA
         raise ConfigError(f"{cat.source}: seeds.{args.split}: the first {n} seeds must be consecutive")
     text = f"{seeds[0]}-{seeds[-1]}"
     stresses = [cat.stress(n) for n in args.stresses]
+    if stresses and not [m for m in methods if m not in (ORACLE, "none")]:
+        raise ConfigError(f"--stress {','.join(args.stresses)}: no cooperative method among --methods "
+                          f"{','.join(methods)}: a stress degrades what the CAVs send, which oracle and none never "
+                          "read")
 
     def one(f: Family, ms: Sequence[str], out: Path, extra: Sequence[str] = (), sets: Sequence[str] = ()
             ) -> SweepArgs:

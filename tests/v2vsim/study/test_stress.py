@@ -140,3 +140,16 @@ def test_a_stress_study_finds_each_methods_breaking_point(tmp_path: Path, monkey
     assert "| overall | v2vnet | > 400 (never) |" in md and "| overall | cobevt | 200 |" in md
     assert (args.out / "stress_latency.png").stat().st_size > 5000
     assert not (args.out / "leaderboard.md").exists()
+
+
+def test_a_stress_needs_a_cooperative_method_and_a_known_name(tmp_path: Path) -> None:
+    from dataclasses import replace
+
+    from v2vsim.config import ConfigError
+
+    args = _args(tmp_path)
+    cat = load_catalogue(args.catalogue)
+    with pytest.raises(ConfigError, match="no cooperative method among --methods oracle,none"):
+        family_sweeps(replace(args, methods=("oracle", "none")), cat)
+    with pytest.raises(ConfigError, match="no stress 'jitter'; stresses: latency, pose"):
+        family_sweeps(replace(args, stresses=("jitter",)), cat)
