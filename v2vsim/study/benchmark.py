@@ -30,7 +30,7 @@ from v2vsim.study.leaderboard import episodes_of, write_leaderboard
 from v2vsim.study.plan import RunSpec
 from v2vsim.study.runs import Job
 from v2vsim.study.stats import DEFAULT_B
-from v2vsim.study.stress import COMP, REFERENCE, compensable, level_episodes, reference_of, write_stress
+from v2vsim.study.stress import COMP, REFERENCE, compensable, reference_of, study_levels, write_stress
 from v2vsim.study.sweep import EXIT_INTERRUPTED, SweepArgs, prepare, sweep
 
 DRIVING_ONLY = "control.perceive=driving"
@@ -141,11 +141,7 @@ def benchmark(args: BenchmarkArgs, start: Callable[[RunSpec], Job] | None = None
     docs = {name: json.loads((s.out / "sweep.json").read_text()) for name, s in plan}
     if args.stresses:
         stresses = [cat.stress(n) for n in args.stresses]
-        levels = {st.name: [{f: level_episodes(f, docs[f"{f}/{reference_of(st)}"],
-                                                [(docs[n], n.removeprefix(f"{f}/{st.name}")) for n, _ in plan
-                                                 if n in (f"{f}/{st.name}", f"{f}/{st.name}{COMP}")],
-                                                st.level.key, v) for f in meta["families"]}
-                             for v in st.level.values] for st in stresses}
+        levels = {st.name: study_levels(st, meta["families"], docs) for st in stresses}
         paths = write_stress(args.out, stresses, levels, {**meta, "stresses": list(args.stresses)}, args.bootstrap)
         print(f"v2vsim benchmark: breaking points: {paths[0]}", file=stream)
         return code

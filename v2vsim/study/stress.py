@@ -110,6 +110,19 @@ def level_episodes(family: str, reference: dict[str, Any], stressed: Sequence[tu
     return episodes_of(family, {"grid": reference["grid"], "rows": rows})
 
 
+def study_levels(s: Stress, families: Sequence[str], docs: dict[str, dict[str, Any]]) -> list[dict[str, Episodes]]:
+    """Per level of `s`, each family's episodes, from the study's sweep documents (sweep.json by the names
+    v2vsim.study.benchmark.family_sweeps gives them: family/reference, family/<stress>, family/<stress>+comp)."""
+    out = []
+    for v in s.level.values:
+        per = {}
+        for f in families:
+            stressed = [(docs[n], suffix) for suffix in ("", COMP) if (n := f"{f}/{s.name}{suffix}") in docs]
+            per[f] = level_episodes(f, docs[f"{f}/{reference_of(s)}"], stressed, s.level.key, v)
+        out.append(per)
+    return out
+
+
 @dataclass(frozen=True)
 class Curve:
     """One method along one stress in one scope: per level, its difference from `none` per measure."""
