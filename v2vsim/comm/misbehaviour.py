@@ -31,7 +31,7 @@ import numpy as np
 
 from v2vsim.config.schema import Lie
 from v2vsim.evaluation.gt import rasterise_boxes
-from v2vsim.world.geometry import BevGrid
+from v2vsim.world.geometry import BevGrid, Pose, body_to_world, world_to_body, wrap_angle
 
 MARGIN_M = 1.0  # a removed vehicle's footprint is grown by this on every side: its features spread past its body
 CAR_LM, CAR_WM = 4.5, 1.9  # an added vehicle's footprint
@@ -76,10 +76,8 @@ def active(lies: Sequence[Lie], me: str, frame: int) -> list[Lie]:
 def claimed_pose(pose: tuple[float, float, float, float], lie: Lie) -> tuple[float, float, float, float]:
     """The pose a `pose` lie claims: moved by shift_m in the sender's own frame, turned by rotate_deg."""
     x, y, z, yaw = pose
-    fwd, left = lie.shift_m
-    c, s = math.cos(yaw), math.sin(yaw)
-    new_yaw = (yaw + math.radians(lie.rotate_deg) + math.pi) % (2 * math.pi) - math.pi
-    return (x + c * fwd - s * left, y + s * fwd + c * left, z, new_yaw)
+    moved = body_to_world(np.asarray(lie.shift_m, dtype=np.float64), Pose(x, y, z, yaw))
+    return (float(moved[0]), float(moved[1]), z, float(wrap_angle(yaw + math.radians(lie.rotate_deg))))
 
 
 def _mask(boxes: np.ndarray, size_m: float, cells: int, margin: float = 0.0) -> np.ndarray:
@@ -95,9 +93,8 @@ def _inside(points: np.ndarray, boxes: np.ndarray, margin: float) -> np.ndarray:
     """[N] bool: box centres (N, >=2) inside any of `boxes` grown by margin."""
     out = np.zeros(len(points), dtype=bool)
     for x, y, length, width, yaw in np.asarray(boxes[:, :5], dtype=np.float64):
-        c, s = math.cos(yaw), math.sin(yaw)
-        dx, dy = points[:, 0] - x, points[:, 1] - y
-        out |= (np.abs(c * dx + s * dy) <= length / 2 + margin) & (np.abs(-s * dx + c * dy) <= width / 2 + margin)
+        local = world_to_body(np.asarray(points[:, :2], dtype=np.float64), Pose(x, y, 0.0, yaw))
+        out |= (np.abs(local[:, 0]) <= length / 2 + margin) & (np.abs(local[:, 1]) <= width / 2 + margin)
     return out
 
 

@@ -89,9 +89,10 @@ def _check_egos(sc: Scenario, loader: _Loader) -> None:
 
 def _check_lies(sc: Scenario, loader: _Loader) -> None:
     """A liar must be a CAV of the run (a typo would make an attacked run silently clean)."""
+    from v2vsim.sensors.sensing import ego_ids  # (the sensors import the config: not at module level)
+
     ids, allowed = _cav_ids(sc)
-    ego = sc.cavs.ego
-    egos = ids[:1] if ego == "first" else ids if ego == "all" else list(ego)
+    egos = ego_ids(sc, ids)
     for i, lie in enumerate(sc.misbehaviour):
         for j, c in enumerate(lie.cavs):
             if c not in ids:

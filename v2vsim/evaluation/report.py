@@ -71,6 +71,7 @@ def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: Comm
     sc = summary.scenario
     sim_s = summary.sim_s or summary.frames / sc.rate_hz
     comm_doc = comm.to_json()
+    connected = connected_cavs(sc)  # every placed vehicle, unless cavs.penetration left some unconnected
     comm_doc["by_kind"] = {k: s.to_json() for k, s in comm_by_kind.items() if k != "features"}
     return {
         "scenario": sc.name,
@@ -104,7 +105,7 @@ def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: Comm
         # where the ego's models ran (v2vsim.perception.device): asked, used ("cpu" or "cuda:N"), that device's name;
         # the CAVs resolve perception.device on their own hosts
         "device": summary.device,
-        "neighbours_in_range": neighbour_shares(summary.neighbours, len(connected_cavs(sc))),
+        "neighbours_in_range": neighbour_shares(summary.neighbours, len(connected)),
         "ap_sort": sc.evaluation.ap_sort,
         "pipeline": sc.transport.pipeline,
         "wall_s": round(summary.wall_s, 3),
@@ -114,7 +115,7 @@ def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: Comm
         # misbehaviour: an attacked run says so in its metrics (v2vsim/comm/misbehaviour.py)
         **({"misbehaviour": [dataclasses.asdict(lie) for lie in sc.misbehaviour]} if sc.misbehaviour else {}),
         # cavs.penetration: which placed vehicles were connected (the others drove as SUMO's, silent)
-        **({"penetration": {"share": sc.cavs.penetration, "connected": connected_cavs(sc)}}
+        **({"penetration": {"share": sc.cavs.penetration, "connected": connected}}
            if sc.cavs.penetration is not None else {}),
         # a mixed fleet only: each agent type's CAVs and the feature bytes the ego received from them per frame
         **({"fleet": fleet_json(summary)} if summary.fleet else {}),

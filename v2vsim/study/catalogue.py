@@ -129,6 +129,15 @@ class _Reader:
             raise self.fail(where, f"expected an integer >= 1, got {v!r}")
         return v
 
+    def axis(self, key: str, values: list[Any], where: str) -> Axis:
+        """A swept key from YAML values, each parsed as `--grid KEY=...` parses it (so a mapping level is a value)."""
+        texts = ",".join(yaml.safe_dump(v, default_flow_style=True).strip().removesuffix("\n...").strip()
+                         for v in values)
+        try:
+            return parse_axis(f"{key}={texts}")
+        except ConfigError as e:
+            raise self.fail(where, str(e)) from None
+
     def methods(self, v: Any, where: str) -> tuple[str, ...]:
         allowed = (ORACLE, *METHODS)
         if not isinstance(v, list) or not v:
@@ -199,12 +208,7 @@ def load_catalogue(path: Path | None = None) -> Catalogue:
         for key, values in grid.items():
             if not isinstance(values, list) or not values:
                 raise r.fail(f"{where}.grid.{key}", "expected a non-empty list of values")
-            texts = ",".join(yaml.safe_dump(v, default_flow_style=True).strip().removesuffix("\n...").strip()
-                             for v in values)
-            try:
-                axes.append(parse_axis(f"{key}={texts}"))
-            except ConfigError as e:
-                raise r.fail(f"{where}.grid.{key}", str(e)) from None
+            axes.append(r.axis(key, values, f"{where}.grid.{key}"))
         families.append(Family(name, scenario, str(f.get("pre_crash", "")), str(f.get("occlusion", "")),
                                tuple(axes)))
     names = [f.name for f in families]
@@ -225,12 +229,7 @@ def _stresses(r: _Reader, raw: Any) -> dict[str, Stress]:
         if not isinstance(levels, list) or len(levels) < 2:
             raise r.fail(f"{where}.levels", "expected a list of at least two levels, mildest first")
         key = r.text(st["key"], f"{where}.key")
-        texts = ",".join(yaml.safe_dump(v, default_flow_style=True).strip().removesuffix("\n...").strip()
-                         for v in levels)
-        try:
-            axis = parse_axis(f"{key}={texts}")
-        except ConfigError as e:
-            raise r.fail(f"{where}.levels", str(e)) from None
+        axis = r.axis(key, levels, f"{where}.levels")
         x = st.get("x", levels)
         if (not isinstance(x, list) or len(x) != len(levels)
                 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in x)):

@@ -88,7 +88,8 @@ class Versus:
     needed: int | None  # episodes a paired test would need (None: separated, or no difference to find)
 
 
-def _values(eps: dict[Episode, dict[str, dict[str, float | None]]], method: str, measure: str) -> dict[Episode, float]:
+def values_of(eps: dict[Episode, dict[str, dict[str, float | None]]], method: str, measure: str
+              ) -> dict[Episode, float]:
     return {e: v for e, runs in eps.items() if (v := (runs.get(method) or {}).get(measure)) is not None}
 
 
@@ -107,7 +108,7 @@ def needed_episodes(diffs: Sequence[float], level: float = 0.95, power: float = 
 def compare(eps: dict[Episode, dict[str, dict[str, float | None]]], a: str, b: str, measure: str, scope: str,
             boot: int = DEFAULT_B) -> Versus:
     """a - b on the episodes both have the measure for."""
-    va, vb = _values(eps, a, measure), _values(eps, b, measure)
+    va, vb = values_of(eps, a, measure), values_of(eps, b, measure)
     common = sorted(set(va) & set(vb), key=lambda e: (e.family, e.config, e.seed))
     diffs = [va[e] - vb[e] for e in common]
     iv = interval([[d] for d in diffs], boot, f"leaderboard|{scope}|{measure}|{a}-{b}", DEFAULT_RNG_SEED)
@@ -127,7 +128,7 @@ class Board:
 def board(scope: str, eps: dict[Episode, dict[str, dict[str, float | None]]], methods: Sequence[str],
           boot: int = DEFAULT_B) -> Board:
     present = [m for m in methods if any(m in runs for runs in eps.values())]
-    alone = {m: {k: interval([[v] for v in _values(eps, m, k).values()], boot, f"leaderboard|{scope}|{k}|{m}",
+    alone = {m: {k: interval([[v] for v in values_of(eps, m, k).values()], boot, f"leaderboard|{scope}|{k}|{m}",
                              DEFAULT_RNG_SEED) for k in MEASURES} for m in present}
     versus = {m: {k: compare(eps, m, BASELINE, k, scope, boot) for k in MEASURES} for m in present if m != BASELINE}
     ranked = sorted(present, key=lambda m: -(alone[m]["driving_score"].mean if alone[m]["driving_score"] else -1.0))
@@ -140,8 +141,13 @@ def boards(per_family: dict[str, dict[Episode, dict[str, dict[str, float | None]
            boot: int = DEFAULT_B) -> list[Board]:
     """One board per family, then the overall one (every episode pooled)."""
     out = [board(f, eps, methods, boot) for f, eps in per_family.items()]
-    pooled = {e: runs for eps in per_family.values() for e, runs in eps.items()}
-    return out + [board(ALL, pooled, methods, boot)]
+    return out + [board(ALL, pooled(per_family), methods, boot)]
+
+
+def pooled(per_family: dict[str, dict[Episode, dict[str, dict[str, float | None]]]]
+           ) -> dict[Episode, dict[str, dict[str, float | None]]]:
+    """Every family's episodes in one mapping (the overall scope)."""
+    return {e: runs for eps in per_family.values() for e, runs in eps.items()}
 
 
 def config_table(eps: dict[Episode, dict[str, dict[str, float | None]]], methods: Sequence[str]) -> list[str]:

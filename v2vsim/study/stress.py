@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from v2vsim.study.catalogue import Stress
-from v2vsim.study.leaderboard import ALL, BASELINE, ORACLE, Episode, Versus, compare, episodes_of
+from v2vsim.study.leaderboard import ALL, BASELINE, ORACLE, Episode, Versus, compare, episodes_of, pooled, values_of
 from v2vsim.study.stats import DEFAULT_B, Interval
 from v2vsim.study.summary import cell
 
@@ -146,8 +146,7 @@ def curves(s: Stress, levels: Sequence[dict[str, Episodes]], boot: int = DEFAULT
     scopes = list(levels[0]) + [ALL] if levels else []
     out = []
     for scope in scopes:
-        per_level = [({e: r for eps in lv.values() for e, r in eps.items()} if scope == ALL else lv.get(scope, {}))
-                     for lv in levels]
+        per_level = [in_scope(lv, scope) for lv in levels]
         methods = list(dict.fromkeys(m for eps in per_level for runs in eps.values() for m in runs
                                      if m not in (ORACLE, BASELINE)))
         for m in methods:
@@ -158,15 +157,14 @@ def curves(s: Stress, levels: Sequence[dict[str, Episodes]], boot: int = DEFAULT
     return out
 
 
+def in_scope(level: dict[str, Episodes], scope: str) -> Episodes:
+    """One level's episodes of a family, or of every family pooled (scope "overall")."""
+    return pooled(level) if scope == ALL else level.get(scope, {})
+
+
 def _mean(eps: Episodes, method: str, measure: str) -> float | None:
-    vals = [v for runs in eps.values() if (v := (runs.get(method) or {}).get(measure)) is not None]
+    vals = list(values_of(eps, method, measure).values())
     return float(np.mean(vals)) if vals else None
-
-
-def baseline_means(levels: Sequence[dict[str, Episodes]], scope: str, measure: str) -> float | None:
-    eps = levels[0] if levels else {}
-    pooled = {e: r for x in eps.values() for e, r in x.items()} if scope == ALL else eps.get(scope, {})
-    return _mean(pooled, BASELINE, measure)
 
 
 def breaking_md(stresses: Sequence[Stress], by_stress: dict[str, list[Curve]], meta: dict[str, Any]) -> str:
@@ -281,6 +279,6 @@ def write_stress(out: Path, stresses: Sequence[Stress], levels: dict[str, list[d
     paths[2].write_text(json.dumps(to_json(stresses, by_stress, meta), indent=1))
     for s in stresses:
         if s.name in by_stress:
-            nm = {k: baseline_means(levels[s.name], ALL, k) for k in CURVE_MEASURES}
+            nm = {k: _mean(in_scope(levels[s.name][0], ALL), BASELINE, k) for k in CURVE_MEASURES}
             paths.append(plot(out, s, by_stress[s.name], nm))
     return paths

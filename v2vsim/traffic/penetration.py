@@ -16,18 +16,13 @@ import zlib
 import numpy as np
 
 from v2vsim.config import Scenario
+from v2vsim.sensors.sensing import ego_ids
 from v2vsim.traffic.base import cav_id
 
 
 def placed_vehicles(sc: Scenario) -> list[str]:
     """Every vehicle the scenario places as a CAV candidate (cav0 first), connected or not."""
     return [cav_id(i) for i in range(sc.cavs.count)]
-
-
-def ego_places(sc: Scenario, placed: list[str]) -> list[str]:
-    """The egos among `placed` (cavs.ego: first | all | ids)."""
-    ego = sc.cavs.ego
-    return placed[:1] if ego == "first" else list(placed) if ego == "all" else [c for c in ego if c in placed]
 
 
 def connected_share_count(share: float, others: int) -> int:
@@ -41,7 +36,7 @@ def connected_cavs(sc: Scenario) -> list[str]:
     share = sc.cavs.penetration
     if share is None:
         return placed
-    egos = ego_places(sc, placed)
+    egos = ego_ids(sc, placed)
     others = [c for c in placed if c not in egos]
     order = np.random.default_rng([sc.seed, zlib.crc32(b"cavs.penetration")]).permutation(len(others))
     picked = {others[i] for i in order[:connected_share_count(share, len(others))]}

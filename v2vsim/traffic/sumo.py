@@ -117,6 +117,7 @@ class SumoBackend(BackendBase):
         self._frame = 0
         self._known: list[str] = []  # subscribed vehicle ids in departure order
         self._cav_ids: tuple[str, ...] = tuple(cav_id(i) for i in range(scenario.cavs.count))
+        self._placed = frozenset(self._cav_ids)
         self._connected = frozenset(connected_cavs(scenario))
         self._rng = np.random.default_rng(scenario.seed)
         self._bg_next_t = 0.0
@@ -387,7 +388,7 @@ class SumoBackend(BackendBase):
         results = ls.vehicle.getAllSubscriptionResults()
         cav_set = self._connected  # a placed vehicle cavs.penetration left unconnected is an ordinary vehicle
         order = [c for c in self._cav_ids if c in results]
-        order += [v for v in self._known if v in results and v not in self._cav_ids]
+        order += [v for v in self._known if v in results and v not in self._placed]
         self._known = [v for v in self._known if v in results]  # forget vehicles that left
         actors = []
         for vid in order:
