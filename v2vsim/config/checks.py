@@ -89,10 +89,8 @@ def _check_egos(sc: Scenario, loader: _Loader) -> None:
 
 def _check_lies(sc: Scenario, loader: _Loader) -> None:
     """A liar must be a CAV of the run (a typo would make an attacked run silently clean)."""
-    from v2vsim.sensors.sensing import ego_ids  # (the sensors import the config: not at module level)
-
     ids, allowed = _cav_ids(sc)
-    egos = ego_ids(sc, ids)
+    egos = sc.cavs.egos_among(ids)
     for i, lie in enumerate(sc.misbehaviour):
         for j, c in enumerate(lie.cavs):
             if c not in ids:

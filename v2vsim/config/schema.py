@@ -162,6 +162,15 @@ class CavsConfig:
     # SUMO-driven vehicles; v2vsim/traffic/penetration.py); null: all of them
     penetration: float | None = _f(None, "0..1 or null (every placed vehicle connected)", _prob)
 
+    def egos_among(self, present: typing.Sequence[str]) -> list[str]:
+        """The CAVs that fuse (and, in a closed loop, drive), from `ego` (first | all | list of ids) and the CAVs
+        present, in `present`'s order for first and all."""
+        if self.ego == "first":
+            return list(present[:1])
+        if self.ego == "all":
+            return list(present)
+        return [c for c in self.ego if c in present]
+
 
 @dataclass(frozen=True)
 class LidarConfig:

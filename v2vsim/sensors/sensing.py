@@ -42,9 +42,4 @@ def sense(world: WorldState, cav_id: str, scenario: Scenario, scene: Scene,
 
 def ego_ids(scenario: Scenario, present: list[str]) -> list[str]:
     """The CAVs that fuse, from `cavs.ego` (first | all | list of ids) and the CAVs present."""
-    ego = scenario.cavs.ego
-    if ego == "first":
-        return present[:1]
-    if ego == "all":
-        return list(present)
-    return [c for c in ego if c in present]
+    return scenario.cavs.egos_among(present)

@@ -16,7 +16,6 @@ import zlib
 import numpy as np
 
 from v2vsim.config import Scenario
-from v2vsim.sensors.sensing import ego_ids
 from v2vsim.traffic.base import cav_id
 
 
@@ -36,7 +35,7 @@ def connected_cavs(sc: Scenario) -> list[str]:
     share = sc.cavs.penetration
     if share is None:
         return placed
-    egos = ego_ids(sc, placed)
+    egos = sc.cavs.egos_among(placed)
     others = [c for c in placed if c not in egos]
     order = np.random.default_rng([sc.seed, zlib.crc32(b"cavs.penetration")]).permutation(len(others))
     picked = {others[i] for i in order[:connected_share_count(share, len(others))]}

@@ -82,12 +82,6 @@ def _libsumo() -> ModuleType:
     return libsumo
 
 
-def _egos(scenario: Scenario, cavs: tuple[str, ...]) -> tuple[str, ...]:
-    """The ego CAVs (cavs.ego: first | all | ids), whose vehicles a closed loop drives."""
-    ego = scenario.cavs.ego
-    return cavs[:1] if ego == "first" else cavs if ego == "all" else tuple(c for c in ego if c in cavs)
-
-
 def sumo_to_pose(x_front: float, y_front: float, angle_deg: float, length: float) -> Pose:
     """SUMO front-bumper position + navigation angle -> footprint-centre Pose (z = 0, ground)."""
     yaw = math.radians(90.0 - angle_deg)
@@ -133,7 +127,7 @@ class SumoBackend(BackendBase):
         self._ssm_file = ssm_file
         self._ssm_scratch: tempfile.TemporaryDirectory[str] | None = None
         self._driven = (None if scenario.control is None else
-                        DrivenVehicles(self._net, _egos(scenario, self._cav_ids), scenario.control))
+                        DrivenVehicles(self._net, tuple(scenario.cavs.egos_among(self._cav_ids)), scenario.control))
 
     # -- public API ----------------------------------------------------------------------------
 
