@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import resource
+import threading
 import time
 from collections import defaultdict
 from collections.abc import Iterator, Mapping
@@ -19,9 +20,13 @@ from pathlib import Path
 class StageTimer:
     """Summed wall time per stage; `split()` is ms per frame over the frames counted so far. Also the process's
     CPU time (every thread, user + system) from its first timed stage on: on a loaded machine a stage's wall time
-    includes the time the process waited for a core, its CPU time does not."""
+    includes the time the process waited for a core, its CPU time does not.
+
+    Thread-safe: the ego's scoring thread times its stages on the same timer the main thread reads for
+    `method_ms` while fusing (a stage first timed mid-read once grew the dict under the reader)."""
 
     def __init__(self) -> None:
+        self._lock = threading.Lock()
         self.total_ms: dict[str, float] = defaultdict(float)
         self.frames = 0
         self._cpu0: float | None = None  # process CPU seconds when the first stage began (start-up excluded)
@@ -37,18 +42,23 @@ class StageTimer:
         try:
             yield
         finally:
-            self.total_ms[name] += (time.perf_counter() - t0) * 1000
+            self.add(name, (time.perf_counter() - t0) * 1000)
 
     def add(self, name: str, ms: float) -> None:
         self._start_cpu()
-        self.total_ms[name] += ms
+        with self._lock:
+            self.total_ms[name] += ms
+
+    def _totals(self) -> dict[str, float]:
+        with self._lock:
+            return dict(self.total_ms)
 
     def frame_done(self) -> None:
         self.frames += 1
 
     def split(self) -> dict[str, float]:
         n = max(self.frames, 1)
-        return {k: round(v / n, 3) for k, v in self.total_ms.items()}
+        return {k: round(v / n, 3) for k, v in self._totals().items()}
 
     def compute_ms(self) -> float:
         """ms per frame of the process's own work (every stage but the waits)."""
@@ -58,7 +68,7 @@ class StageTimer:
         """Each fusion method's fusion + decoding ms summed so far (the ego's stages "fusion.M", "decoding.M"):
         which methods take longest."""
         out: dict[str, float] = defaultdict(float)
-        for k, v in self.total_ms.items():
+        for k, v in self._totals().items():
             stage, _, method = k.partition(".")
             if method and stage in ("fusion", "decoding"):
                 out[method] += v

@@ -37,3 +37,31 @@ def test_method_ms_sums_each_methods_fusion_and_decoding() -> None:
                       ("decoding.none", 9.0), ("wait", 300.0)):
         timer.add(stage, ms)
     assert timer.method_ms() == {"cobevt": 70.0, "none": 10.0}
+
+
+def test_reading_method_costs_while_another_thread_times_new_stages_never_fails():
+    """The ego's scoring thread times stages on the timer the main thread reads while fusing: a stage first
+    timed mid-read once raised "dictionary changed size during iteration" in the ego (CI, a live run)."""
+    import sys
+    import threading
+
+    timer = StageTimer()
+    done = threading.Event()
+
+    def writer() -> None:
+        for i in range(3000):  # each a new stage: the dict grows while it is read
+            timer.add(f"fusion.m{i}", 1.0)
+        done.set()
+
+    old = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)  # switch threads as often as possible: the race shows within milliseconds
+    t = threading.Thread(target=writer)
+    t.start()
+    try:
+        while not done.is_set():
+            timer.method_ms()
+            timer.split()
+    finally:
+        t.join()
+        sys.setswitchinterval(old)
+    assert len(timer.method_ms()) == 3000
