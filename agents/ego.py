@@ -30,6 +30,7 @@ import torch
 from agents.args import AgentArgs, parse_agent_args, run_signer
 from agents.bus import DRIVER_GRACE_S, START_TIMEOUT_S, Bus
 from agents.ego_collect import bytes_for, collect, control_rejections, reject_leftovers
+from agents.ego_defence import SenderCheck
 from agents.ego_mailbox import Mailbox, Window, cav_died, notify, put_world, set_done, wait_messages, wait_world
 from agents.ego_replay import ReplayBus
 from agents.ego_scoring import AfterFusion, FusedFrame, signals_deferred
@@ -184,6 +185,10 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
     # comm.compensation: each intermediate method whose zoo ships a trained extrapolation (never a random one)
     extrapolations = {m: e.to(device) for m in models
                       if sc.comm.compensation and (e := build_extrapolation(sc, m)) is not None}
+    # defence: each sender's features decoded alone by the single-agent model, compared with the others' each frame
+    sender_check = None if not sc.defence.on else SenderCheck(
+        sc, models["none"] if "none" in models else build_method_models(sc, encoder, ("none",))["none"].to(device),
+        precision)
     static_bytes = bus.fetch("static", "main", START_TIMEOUT_S)
     static = static_from_bytes(static_bytes)
     # the map rasters for the ground truth: one set for every replay of a recording in this process
@@ -358,6 +363,9 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
                                              for s, (old, rel, gap) in inp.previous_features.items()}
                     inp.extrapolated = {m: extrapolate_features(e, inp, sc.bev.size_m)
                                         for m, e in extrapolations.items()}
+            if sender_check is not None:
+                with timer.stage("consistency"):
+                    inp, _ = sender_check.check(k, inp)
             with timer.stage("ground_truth"):
                 gt, boxes_gt = (ground_truth(world, me, sc, visible, assets) if replay is None else
                                 replay.once(("ground_truth", me, frozenset(visible)),
@@ -414,8 +422,10 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
             # its lost agents are the recording's, from the same frames)
             ious = {m: (s.vehicle.iou, s.vehicle_all.iou, s.road.iou, s.lane.iou) for m, s in scores.items()}
             went_to_end = status == "complete"
-            status = final_status(status, lost, unscored(ious))
+            status = final_status(status, lost, unscored(ious),
+                                  None if sender_check is None else sender_check.flagged_counts())
             summary.timing = timer.to_json() | {"fusion_threads": threads}
+            summary.defence = None if sender_check is None else sender_check.to_json()
             summary.frames = frames_done
             summary.sim_s = (k + 1) / sc.rate_hz
             summary.status = status

@@ -326,6 +326,30 @@ class Lie:
 
 
 @dataclass(frozen=True)
+class DefenceConfig:
+    """The ego's check of what trusted senders say (issue 55; v2vsim/perception/consistency.py, docs/scenario.md
+    "defence"): each frame, each sender's single-agent maps are compared with the consensus of the ego and the other
+    senders where they are near the same cells; a sender that disagrees beyond a threshold is flagged that frame."""
+
+    detect: bool = False  # score and flag senders each frame (one single-agent decoding per sender and frame)
+    exclude: bool = False  # the defence: every method fuses without the senders flagged at that frame (implies detect)
+    near_m: float = _f(30.0, "> 0 (m: a cell is compared where the sender and another agent are within this of it)",
+                       _pos)
+    # calibrated on clean runs of tuning seeds (docs/results.md "A lying CAV"): the largest clean value times ~1.5
+    road_threshold: float = _f(0.2, "0..1 (mean |road probability difference| over the shared cells)",
+                               lambda v: 0 <= v <= 1)
+    vehicle_threshold_m2: float = _f(12.0, ">= 0 (m^2 of shared cells where the sender and the consensus disagree "
+                                           "on a vehicle by more than 0.5)", _nonneg)
+    min_shared_m2: float = _f(100.0, ">= 0 (m^2: fewer shared cells is no evidence, nothing is flagged)", _nonneg)
+    min_frames: int = _f(3, ">= 1 (frames a sender is flagged in before the run's status says so)",
+                         lambda v: v >= 1)
+
+    @property
+    def on(self) -> bool:
+        return self.detect or self.exclude
+
+
+@dataclass(frozen=True)
 class TransportConfig:
     mode: Literal["peer", "client"] = "peer"  # peer: a loopback mesh; client: through transport.connect routers
     connect: tuple[str, ...] = _f((), "zenoh endpoints such as tcp/127.0.0.1:7447")
@@ -454,6 +478,7 @@ class Scenario:
     output: OutputConfig = field(default_factory=OutputConfig)
     control: ControlConfig | None = None  # closed loop when present (docs/scenario.md "control")
     misbehaviour: tuple[Lie, ...] = ()  # CAVs that lie on purpose (an attacked run; docs/scenario.md "misbehaviour")
+    defence: DefenceConfig = field(default_factory=DefenceConfig)  # the ego's misbehaviour check (docs: "defence")
     source: str = field(default="<defaults>", metadata={"internal": True})  # the YAML file
     overrides: tuple[str, ...] = field(default=(), metadata={"internal": True})  # --set, for child processes
 

@@ -64,6 +64,7 @@ class RunSummary:
     # a mixed fleet (cavs.fleet): CAV id -> its agent type's label (v2vsim.perception.fleet); empty otherwise
     fleet: dict[str, str] = field(default_factory=dict)
     feature_bytes: dict[str, int] = field(default_factory=dict)  # feature-message bytes received, by sender
+    defence: dict | None = None  # defence.detect/exclude: metrics.json `defence` (agents.ego_defence.SenderCheck)
 
 
 def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: CommStats,
@@ -114,6 +115,8 @@ def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: Comm
         **({"driving": summary.driving} if summary.driving is not None else {}),
         # misbehaviour: an attacked run says so in its metrics (v2vsim/comm/misbehaviour.py)
         **({"misbehaviour": [dataclasses.asdict(lie) for lie in sc.misbehaviour]} if sc.misbehaviour else {}),
+        # the ego's misbehaviour check (defence.detect / exclude): per sender the frames compared and flagged
+        **({"defence": summary.defence} if summary.defence is not None else {}),
         # cavs.penetration: which placed vehicles were connected (the others drove as SUMO's, silent)
         **({"penetration": {"share": sc.cavs.penetration, "connected": connected}}
            if sc.cavs.penetration is not None else {}),
@@ -241,6 +244,15 @@ def _method_cbr(method: str, comm: CommStats, comm_by_kind: dict[str, CommStats]
     return {"cbr_mean": cbr["mean"], "cbr_p95": cbr["p95"]}
 
 
+def defence_line(d: dict) -> str:
+    """report.md's sentence on the misbehaviour check (metrics.json `defence`)."""
+    what = "fused without a sender in the frames it was flagged" if d["exclude"] else "detection only"
+    per = ", ".join(f"{s} flagged in {v['frames_flagged']} of {v['frames_compared']} frames compared"
+                    for s, v in d["senders"].items()) or "no sender shared enough cells to be compared"
+    return (f"**Misbehaviour check** (`defence`, {what}; thresholds road {d['road_threshold']:g}, vehicle "
+            f"{d['vehicle_threshold_m2']:g} m^2 within {d['near_m']:g} m): {per}.")
+
+
 def report_md(doc: dict, summary: RunSummary) -> str:
     sc = summary.scenario
     lines = [f"# v2vsim run: {sc.name}", ""]
@@ -254,6 +266,8 @@ def report_md(doc: dict, summary: RunSummary) -> str:
     if sc.misbehaviour:  # nobody should mistake an attacked run for a clean one
         lines += ["**Attacked run** (`misbehaviour`): " + "; ".join(describe(lie) for lie in sc.misbehaviour)
                   + ". The scores below are under attack.", ""]
+    if (d := doc.get("defence")) is not None:
+        lines += [defence_line(d), ""]
     lines += [TRUST_LINES[sc.comm.auth.mode], ""]
     if summary.device is not None:
         lines += [device_line(summary.device), ""]

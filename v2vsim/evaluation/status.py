@@ -5,8 +5,9 @@ the truth: a run that went through every frame but lost agents, or in which a me
 Statuses (docs/run.md "How a run ends"):
 
 - `complete`: every frame, every agent, every method scored;
-- `degraded: <what>`: every frame, but CAVs were lost (`cav1-cav3 lost from frame 6, cav5 lost from frame 9`)
-  or methods scored no frame (`methods with no score: late, cobevt`); exit 0, the files are written;
+- `degraded: <what>`: every frame, but CAVs were lost (`cav1-cav3 lost from frame 6, cav5 lost from frame 9`),
+  methods scored no frame (`methods with no score: late, cobevt`) or the misbehaviour check flagged a sender
+  (`cav1 disagreed in 57 of 100 frames`, `defence`); exit 0, the files are written;
 - anything else (ended early, stalled, driver died, interrupted, crashed, ego left the simulation, failed):
   set by the ego or the runner where it happened, and kept as it is here.
 
@@ -68,15 +69,18 @@ def unscored(ious: Mapping[str, Sequence[float | None]]) -> list[str]:
     return [m for m, values in ious.items() if all(v is None for v in values)]
 
 
-def final_status(ended: str, lost: Mapping[str, int], no_score: Sequence[str]) -> str:
+def final_status(ended: str, lost: Mapping[str, int], no_score: Sequence[str],
+                 disagreed: Mapping[str, tuple[int, int]] | None = None) -> str:
     """The status a run reports: `ended` (how the ego's loop ended) unless it is `complete` and agents were
-    lost or methods scored nothing; then `degraded: <what>`. A CAV whose vehicle left the simulation is not in
+    lost, methods scored nothing or senders were flagged by the misbehaviour check (`disagreed`: sender -> (frames
+    flagged, frames compared)); then `degraded: <what>`. A CAV whose vehicle left the simulation is not in
     `lost` (it ended its agent normally) and degrades nothing."""
     if ended != COMPLETE:
         return ended
     what = [lost_text(lost)] if lost else []
     if no_score:
         what.append(f"methods with no score: {', '.join(no_score)}")
+    what += [f"{s} disagreed in {n} of {m} frames" for s, (n, m) in sorted((disagreed or {}).items())]
     return f"{DEGRADED}: {'; '.join(what)}" if what else COMPLETE
 
 
@@ -95,8 +99,9 @@ def explain(status: str) -> str | None:
     if not is_degraded(status):
         return None
     return ("Degraded: the run went through every frame, but not as configured (a lost CAV sent nothing from "
-            "the frame named; a method with no score scored no frame), so its scores are not those of a clean "
-            "run: leave it out of comparisons or run it again (a sweep leaves it out of its intervals).")
+            "the frame named; a method with no score scored no frame; a sender that disagreed with the others "
+            "may have lied, `defence`), so its scores are not those of a clean run: leave it out of comparisons "
+            "or run it again (a sweep leaves it out of its intervals).")
 
 
 def terminal_line(statuses: Mapping[str, str], report: str) -> str:

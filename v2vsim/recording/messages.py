@@ -72,7 +72,7 @@ def resolved_keys(sc: Any) -> dict[str, Any]:
 RECEIVER_SIDE = (
     "name", "duration_s", "comm.range_m", "comm.latency_ms", "comm.drop", "comm.bandwidth_mbps", "comm.max_age_ms",
     "comm.fusion_deadline_ms", "comm.compensation", "comm.pose_noise", "comm.channel", "comm.medium",
-    "perception.methods", "evaluation", "output", "transport.pipeline",
+    "perception.methods", "evaluation", "output", "transport.pipeline", "defence",
     "transport.mode", "transport.connect", "transport.listen",  # how the processes met: no bus in a replay
 )
 

@@ -1,0 +1,94 @@
+"""The ego's misbehaviour check over a run (`defence`; v2vsim/perception/consistency.py): per frame, each sender's
+disagreement with the others, the senders flagged, and (defence.exclude) the frame's inputs without them; over the
+run, per sender the frames compared and flagged, for metrics.json `defence` and the run's status."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from torch import nn
+
+from v2vsim.config.schema import Scenario
+from v2vsim.perception.consistency import Disagreement, check_frame, decode_alone, without
+from v2vsim.perception.fuse import FusionInputs
+from v2vsim.perception.precision import Precision
+
+
+@dataclass
+class SenderCheck:
+    """One run's check. `model`: the single-agent (`none`) model that decodes each sender's features alone."""
+
+    sc: Scenario
+    model: nn.Module
+    precision: Precision = "fp32"
+    # sender -> per frame compared: (frame, road, vehicle_m2, shared_m2, flagged)
+    frames: dict[str, list[tuple[int, float, float, float, bool]]] = field(default_factory=dict)
+    excluded: int = 0  # sender-frames the defence fused without
+
+    def check(self, k: int, inp: FusionInputs) -> tuple[FusionInputs, set[str]]:
+        """Frame k: score and flag the senders; the inputs every method fuses (without the flagged ones when the
+        defence excludes) and the flagged senders."""
+        cfg = self.sc.defence
+        ego = inp.senders[0]
+        scores: dict[str, list[Disagreement]] = {}
+        hits: set[str] = set()
+        for kind, maps in self._maps(inp).items():  # flagged on any kind it sent
+            poses = inp.poses_by_kind.get(kind, inp.rel_poses)
+            rel = {s: poses[inp.senders.index(s)] for s in maps}
+            frame_scores, frame_flagged = check_frame(maps, rel, ego, self.sc.bev.size_m, cfg)
+            hits |= frame_flagged
+            for s, d in frame_scores.items():
+                scores.setdefault(s, []).append(d)
+        flagged: set[str] = set()
+        for s, ds in scores.items():
+            judged = [d for d in ds if d.road is not None and d.shared_m2 >= cfg.min_shared_m2]
+            if not judged:  # too few shared cells in every kind: no evidence either way
+                continue
+            self.frames.setdefault(s, []).append((k, max(d.road or 0.0 for d in judged),
+                                                  max(d.vehicle_m2 or 0.0 for d in judged),
+                                                  min(d.shared_m2 for d in judged), s in hits))
+            if s in hits:
+                flagged.add(s)
+        if cfg.exclude and flagged:
+            self.excluded += len(flagged)
+            return without(inp, flagged), flagged
+        return inp, flagged
+
+    def _maps(self, inp: FusionInputs) -> dict[str, dict[str, np.ndarray]]:
+        """Per message kind, each sender's single-agent maps [3, S, S]: its features decoded alone; late fusion's
+        outputs as sent (a lie may touch one kind and not the other)."""
+        out = {"features": decode_alone(self.model, inp.features, self.precision)} if inp.features else {}
+        if inp.outputs:
+            out["outputs"] = {s: v[0] for s, v in inp.outputs.items()}
+        return out
+
+    def flagged_counts(self) -> dict[str, tuple[int, int]]:
+        """Sender -> (frames flagged, frames compared), for the senders flagged in at least defence.min_frames."""
+        out = {}
+        for s, rows in sorted(self.frames.items()):
+            n = sum(r[4] for r in rows)
+            if n >= self.sc.defence.min_frames:
+                out[s] = (n, len(rows))
+        return out
+
+    def to_json(self) -> dict:
+        """metrics.json `defence`: the settings, per sender its frames compared and flagged and its scores'
+        median and maximum, and the per-frame scores (frame, road, vehicle_m2, shared_m2, flagged)."""
+        cfg = self.sc.defence
+        senders = {}
+        for s, rows in sorted(self.frames.items()):
+            road = np.array([r[1] for r in rows])
+            veh = np.array([r[2] for r in rows])
+            flagged = [r[0] for r in rows if r[4]]
+            senders[s] = {"frames_compared": len(rows), "frames_flagged": len(flagged),
+                          "first_flagged": flagged[0] if flagged else None,
+                          "road": {"median": round(float(np.median(road)), 4), "max": round(float(road.max()), 4)},
+                          "vehicle_m2": {"median": round(float(np.median(veh)), 2),
+                                         "max": round(float(veh.max()), 2)},
+                          "per_frame": [list(r) for r in rows]}
+        return {"exclude": cfg.exclude, "near_m": cfg.near_m, "road_threshold": cfg.road_threshold,
+                "vehicle_threshold_m2": cfg.vehicle_threshold_m2, "min_shared_m2": cfg.min_shared_m2,
+                "min_frames": cfg.min_frames, "flagged": {s: {"frames": n, "of": m}
+                                                          for s, (n, m) in self.flagged_counts().items()},
+                "excluded_sender_frames": self.excluded, "senders": senders}

@@ -1,0 +1,161 @@
+"""Does a trusted sender say what the others see? The ego's misbehaviour check and defence (`defence`, issue 55;
+docs/run.md "Threat model").
+
+Signatures stop outsiders; they cannot stop an insider, a CAV with its genuine identity that sends false content
+(v2vsim/comm/misbehaviour.py injects such lies on purpose). This module scores each sender's content against the
+consensus of everyone else, in the spirit of CP-Guard's collaborative consistency (Hu et al., AAAI 2025): each agent's
+single-agent maps (vehicle, road, lane probabilities: its features decoded alone by the `none` model, or late
+fusion's outputs as sent) are warped into the ego grid with the pose it claims; for sender s the reference at a cell
+is the mean map of the other agents (the ego always among them) that are within `near_m` of the cell, and s is
+compared where it is near too:
+
+    road(s)       = mean over shared cells of |road_s - road_ref|          a moved, turned, mirrored, scaled or
+                                                                           zeroed map misplaces the road
+    vehicle_m2(s) = area of shared cells where |veh_s - veh_ref| > 0.5      a vehicle added or removed where the
+                                                                           majority of the others see the cell
+
+A sender is flagged at a frame when either exceeds its threshold (DefenceConfig), calibrated on clean runs of
+tuning seeds; with fewer than `min_shared_m2` of shared cells there is no evidence and nothing is flagged. A liar
+pulls the consensus too: the most disagreeing flagged sender is left out of every reference and the others are
+judged again (check_frame), so an honest sender is not flagged for disagreeing with a liar. What it
+cannot see, by construction: a lie about cells no other agent is near (a vehicle hidden where only the liar sees).
+
+The defence (`defence.exclude`) fuses every method without the senders flagged at that frame.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from models.heads import segmentation_probabilities
+from models.warp import warp_to_ego
+from v2vsim.config.schema import DefenceConfig
+from v2vsim.perception.device import model_device, to_host
+from v2vsim.perception.encode import heads_float
+from v2vsim.perception.fuse import FusionInputs
+from v2vsim.perception.precision import Precision
+
+VEHICLE, ROAD = 0, 1  # channels of a single-agent map [3, S, S]: vehicle, road, lane
+MAX_CELLS = 128  # maps are compared on at most this grid (0.78 m cells over 100 m: a car spans ~6 x 2 cells)
+
+
+@dataclass(frozen=True)
+class Disagreement:
+    """One sender's disagreement with the others at one frame (None: no shared cells to judge by)."""
+
+    road: float | None
+    vehicle_m2: float | None
+    shared_m2: float
+
+    def flagged(self, cfg: DefenceConfig) -> bool:
+        if self.road is None or self.vehicle_m2 is None:
+            return False
+        return self.road > cfg.road_threshold or self.vehicle_m2 > cfg.vehicle_threshold_m2
+
+
+@torch.no_grad()
+def decode_alone(model: nn.Module, features: dict[str, np.ndarray], precision: Precision = "fp32"
+                 ) -> dict[str, np.ndarray]:
+    """Each sender's features [C, F, F] decoded alone by the single-agent model -> [3, S, S] probabilities
+    (vehicle, road, lane) in the sender's own frame, one batch for every sender."""
+    if not features:
+        return {}
+    names = list(features)
+    device = model_device(model)
+    feats = torch.from_numpy(np.stack([features[s] for s in names])).to(device)  # [L, C, F, F]
+    out = heads_float(model, feats, precision)
+    probs = segmentation_probabilities(out["dynamic"], out["static"])  # each [L, S, S]
+    maps = np.stack([to_host(probs[k]) for k in ("vehicle", "road", "lane")], axis=1)  # [L, 3, S, S]
+    return {s: maps[i].astype(np.float32) for i, s in enumerate(names)}
+
+
+def disagreements(maps: dict[str, np.ndarray], poses: dict[str, np.ndarray], ego: str, size_m: float,
+                  near_m: float, ignore: frozenset[str] = frozenset()) -> dict[str, Disagreement]:
+    """Every sender's (not the ego's) Disagreement with the consensus of the others, `ignore`d senders left out
+    of every reference (they are still scored).
+
+    maps: sender -> [3, S, S] single-agent probabilities in its own frame (the ego's among them); poses: sender ->
+    (dx, dy, dyaw) it claims in the ego's body frame. Row 0 of a grid is the front, column 0 the left."""
+    if ego not in maps or len(maps) < 2:
+        return {}
+    names = [ego, *[s for s in maps if s != ego]]
+    stack = torch.from_numpy(np.stack([maps[s] for s in names])).float()  # [L, 3, S, S]
+    if stack.shape[-1] > MAX_CELLS:  # the warp's cost grows with S^2; the comparison needs no finer grid
+        stack = F.adaptive_avg_pool2d(stack, MAX_CELLS)
+    rel = torch.from_numpy(np.stack([np.asarray(poses[s], dtype=np.float32) for s in names]))  # [L, 3]
+    warped, inside = warp_to_ego(stack, rel, size_m)  # [L, 3, S, S], [L, S, S]
+    cells = stack.shape[-1]
+    res = size_m / cells
+    centre = size_m / 2 - (torch.arange(cells, dtype=torch.float32) + 0.5) * res
+    fwd, left = centre[:, None], centre[None, :]  # a cell's (forward, left) in the ego frame, [S, 1] and [1, S]
+    near = torch.stack([inside[i] & ((fwd - rel[i, 0]) ** 2 + (left - rel[i, 1]) ** 2 <= near_m ** 2)
+                        for i in range(len(names))]).float()  # [L, S, S]
+    voters = torch.tensor([s not in ignore for s in names], dtype=torch.float32)[:, None, None]  # [L, 1, 1]
+    total_near = (near * voters).sum(0)  # [S, S]
+    total_maps = (warped * (near * voters)[:, None]).sum(0)  # [3, S, S]
+    out: dict[str, Disagreement] = {}
+    for i, s in enumerate(names[1:], start=1):
+        mine = near[i] * voters[i]
+        others = total_near - mine
+        shared = (near[i] > 0) & (others > 0)  # [S, S]
+        shared_m2 = float(shared.sum()) * res * res
+        if shared_m2 == 0:
+            out[s] = Disagreement(None, None, 0.0)
+            continue
+        ref = (total_maps - warped[i] * mine) / others.clamp(min=1)  # [3, S, S] mean of the others near
+        diff = (warped[i] - ref).abs()
+        road = float(diff[ROAD][shared].mean())
+        vehicle_m2 = float((diff[VEHICLE][shared] > 0.5).sum()) * res * res
+        out[s] = Disagreement(round(road, 4), round(vehicle_m2, 2), round(shared_m2, 1))
+    return out
+
+
+def judge(scores: dict[str, Disagreement], cfg: DefenceConfig) -> set[str]:
+    """The senders flagged by these scores (enough shared cells and a score past its threshold)."""
+    return {s for s, d in scores.items() if d.shared_m2 >= cfg.min_shared_m2 and d.flagged(cfg)}
+
+
+def _excess(d: Disagreement, cfg: DefenceConfig) -> float:
+    """How far past its thresholds a score is (> 1: flagged)."""
+    return max((d.road or 0.0) / max(cfg.road_threshold, 1e-9), (d.vehicle_m2 or 0.0) / max(cfg.vehicle_threshold_m2,
+                                                                                               1e-9))
+
+
+def check_frame(maps: dict[str, np.ndarray], poses: dict[str, np.ndarray], ego: str, size_m: float,
+                cfg: DefenceConfig) -> tuple[dict[str, Disagreement], set[str]]:
+    """One frame's verdict: each sender's scores and the senders flagged. A liar also pulls the consensus the
+    honest senders are judged by, so the most disagreeing flagged sender is taken out of every reference and the
+    rest judged again, until no one else is flagged (a greedy leave-one-out; the ego is never left out). A
+    sender's scores are those of the last round it was judged in."""
+    flagged: set[str] = set()
+    scores = disagreements(maps, poses, ego, size_m, cfg.near_m)
+    final = dict(scores)
+    while True:
+        suspects = judge({s: d for s, d in scores.items() if s not in flagged}, cfg)
+        if not suspects:
+            return final, flagged
+        worst = max(suspects, key=lambda s: _excess(scores[s], cfg))
+        flagged.add(worst)
+        final[worst] = scores[worst]
+        scores = disagreements(maps, poses, ego, size_m, cfg.near_m, ignore=frozenset(flagged))
+        final.update({s: d for s, d in scores.items() if s not in flagged})
+
+
+def without(inp: FusionInputs, senders: set[str]) -> FusionInputs:
+    """`inp` as if `senders` had sent nothing this frame (every kind, every method): the defence."""
+    if not senders:
+        return inp
+
+    def keep(table: dict) -> dict:
+        return {s: v for s, v in table.items() if s not in senders}
+
+    return dataclasses.replace(
+        inp, features=keep(inp.features), points=keep(inp.points), outputs=keep(inp.outputs),
+        feature_ages=keep(inp.feature_ages), previous_features=keep(inp.previous_features),
+        extrapolated={m: keep(t) for m, t in inp.extrapolated.items()})
