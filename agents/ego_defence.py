@@ -22,8 +22,8 @@ class SenderCheck:
     sc: Scenario
     model: nn.Module
     precision: Precision = "fp32"
-    # sender -> per frame compared: (frame, road, vehicle_m2, shared_m2, flagged)
-    frames: dict[str, list[tuple[int, float, float, float, bool]]] = field(default_factory=dict)
+    # sender -> per frame compared: (frame, road, vehicle_m2, shared_m2, flagged, road_corr)
+    frames: dict[str, list[tuple[int, float, float, float, bool, float]]] = field(default_factory=dict)
     excluded: int = 0  # sender-frames the defence fused without
 
     def check(self, k: int, inp: FusionInputs) -> tuple[FusionInputs, set[str]]:
@@ -47,7 +47,8 @@ class SenderCheck:
                 continue
             self.frames.setdefault(s, []).append((k, max(d.road or 0.0 for d in judged),
                                                   max(d.vehicle_m2 or 0.0 for d in judged),
-                                                  min(d.shared_m2 for d in judged), s in hits))
+                                                  min(d.shared_m2 for d in judged), s in hits,
+                                                  min(d.road_corr or 0.0 for d in judged)))
             if s in hits:
                 flagged.add(s)
         if cfg.exclude and flagged:
@@ -74,7 +75,7 @@ class SenderCheck:
 
     def to_json(self) -> dict:
         """metrics.json `defence`: the settings, per sender its frames compared and flagged and its scores'
-        median and maximum, and the per-frame scores (frame, road, vehicle_m2, shared_m2, flagged)."""
+        median and maximum, and the per-frame scores (frame, road, vehicle_m2, shared_m2, flagged, road_corr)."""
         cfg = self.sc.defence
         senders = {}
         for s, rows in sorted(self.frames.items()):

@@ -84,6 +84,20 @@ def final_status(ended: str, lost: Mapping[str, int], no_score: Sequence[str],
     return f"{DEGRADED}: {'; '.join(what)}" if what else COMPLETE
 
 
+_DISAGREED = re.compile(r"\S+ disagreed in \d+ of \d+ frames")
+
+
+def as_configured(status: str | None) -> bool:
+    """Whether a run went as configured: `complete`, or degraded only because the misbehaviour check (`defence`)
+    flagged senders. Such a run lost nothing and scored every method; the flag is the check's finding (an attack
+    study counts these runs, and a resumed sweep keeps them)."""
+    if status == COMPLETE:
+        return True
+    if not is_degraded(status):
+        return False
+    return all(_DISAGREED.fullmatch(part.strip()) for part in status.split(":", 1)[1].split(";"))
+
+
 def is_degraded(status: str | None) -> bool:
     return isinstance(status, str) and status.startswith(f"{DEGRADED}:")
 

@@ -52,6 +52,7 @@ class Disagreement:
     road: float | None
     vehicle_m2: float | None
     shared_m2: float
+    road_corr: float | None = None  # Pearson correlation of the road maps over the shared cells (0: a flat map)
 
     def flagged(self, cfg: DefenceConfig) -> bool:
         if self.road is None or self.vehicle_m2 is None:
@@ -112,7 +113,11 @@ def disagreements(maps: dict[str, np.ndarray], poses: dict[str, np.ndarray], ego
         diff = (warped[i] - ref).abs()
         road = float(diff[ROAD][shared].mean())
         vehicle_m2 = float((diff[VEHICLE][shared] > 0.5).sum()) * res * res
-        out[s] = Disagreement(round(road, 4), round(vehicle_m2, 2), round(shared_m2, 1))
+        a, b = warped[i, ROAD][shared], ref[ROAD][shared]
+        a, b = a - a.mean(), b - b.mean()
+        norm = float(a.norm() * b.norm())
+        corr = float((a * b).sum()) / norm if norm > 1e-9 else 0.0
+        out[s] = Disagreement(round(road, 4), round(vehicle_m2, 2), round(shared_m2, 1), round(corr, 4))
     return out
 
 

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from v2vsim.evaluation.status import as_configured
 from v2vsim.study.stats import DEFAULT_B, DEFAULT_RNG_SEED, Interval, interval
 from v2vsim.study.summary import cell
 
@@ -41,13 +42,13 @@ class Episode:
 
 
 def episodes_of(family: str, doc: dict[str, Any]) -> dict[Episode, dict[str, dict[str, float | None]]]:
-    """episode -> method -> measure -> value from a family sweep's sweep.json (complete runs only, as the sweep
-    counts them); the oracle's efficiency is 1, another method's the oracle's finish time over its own."""
+    """episode -> method -> measure -> value from a family sweep's sweep.json (runs that went as configured only,
+    as the sweep counts them); the oracle's efficiency is 1, another method's the oracle's finish time over its own."""
     keys = [g["key"] for g in doc["grid"] if g["key"] != "control.method"]
     out: dict[Episode, dict[str, dict[str, float | None]]] = {}
     for row in doc["rows"]:
         m = row.get("driving_method")
-        if m is None or row.get("status") != "complete":
+        if m is None or not as_configured(row.get("status")):
             continue
         ep = Episode(family, ", ".join(f"{k.rsplit('.', 1)[-1]}={_text(row.get(k))}" for k in keys), int(row["seed"]))
         coll = row.get("driving_collisions")

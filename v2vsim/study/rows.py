@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from v2vsim.evaluation.status import COMPLETE
+from v2vsim.evaluation.status import COMPLETE, as_configured
 from v2vsim.study.grid import Point
 from v2vsim.study.runs import RunResult, read_metrics
 
@@ -104,9 +104,10 @@ def collect(results: Sequence[RunResult]) -> list[Row]:
 
 
 def counted(rows: Sequence[Row], include_degraded: bool = False) -> list[Row]:
-    """The rows a study's statistics take: complete runs only, unless `include_degraded` (a degraded run's scores
-    are not those of the configured run: its lost agents sent nothing from a frame on)."""
-    return [r for r in rows if include_degraded or r.status == COMPLETE]
+    """The rows a study's statistics take: runs that went as configured (complete, or flagged senders only:
+    v2vsim.evaluation.status.as_configured), unless `include_degraded` (a degraded run's scores are not those of
+    the configured run: its lost agents sent nothing from a frame on)."""
+    return [r for r in rows if include_degraded or as_configured(r.status)]
 
 
 def metric_columns(rows: Sequence[Row]) -> list[str]:

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol, TextIO
 
-from v2vsim.evaluation.status import COMPLETE, finished
+from v2vsim.evaluation.status import COMPLETE, as_configured, finished
 from v2vsim.runner import die_with_parent
 from v2vsim.study.plan import RunSpec, same_config
 
@@ -77,7 +77,7 @@ def is_done(spec: RunSpec) -> bool:
     """Complete metrics.json from the same request (a run from before the sweep wrote requests counts); a
     recording run also needs its complete recording."""
     doc = read_metrics(spec.out)
-    if doc is None or doc.get("status") != COMPLETE:
+    if doc is None or not as_configured(doc.get("status")):
         return False
     if spec.records and not recording_complete(spec.out):
         return False

@@ -67,3 +67,16 @@ def test_the_runners_last_line_says_what_happened() -> None:
         "v2vsim: done, not complete: degraded: cav2 lost from frame 12; report: r/report.md"
     assert terminal_line({"cav0": COMPLETE, "cav1": "degraded: cav2 lost from frame 12"}, "r/report.md") == \
         "v2vsim: done, not complete: ego cav1: degraded: cav2 lost from frame 12; report: r/report.md"
+
+
+def test_a_run_degraded_only_by_flagged_senders_went_as_configured() -> None:
+    from v2vsim.evaluation.status import as_configured
+
+    flagged = final_status(COMPLETE, {}, [], {"cav1": (57, 100), "cav2": (3, 90)})
+    assert flagged == "degraded: cav1 disagreed in 57 of 100 frames; cav2 disagreed in 3 of 90 frames"
+    assert as_configured(flagged) and as_configured(COMPLETE)
+    lost_too = final_status(COMPLETE, {"cav3": 4}, [], {"cav1": (5, 9)})
+    assert lost_too == "degraded: cav3 lost from frame 4; cav1 disagreed in 5 of 9 frames"
+    assert not as_configured(lost_too)
+    assert not as_configured("degraded: methods with no score: late") and not as_configured("interrupted after 3 frames")
+    assert not as_configured(None)
