@@ -363,13 +363,13 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
                                              for s, (old, rel, gap) in inp.previous_features.items()}
                     inp.extrapolated = {m: extrapolate_features(e, inp, sc.bev.size_m)
                                         for m, e in extrapolations.items()}
-            if sender_check is not None:
-                with timer.stage("consistency"):
-                    inp, _ = sender_check.check(k, inp)
             with timer.stage("ground_truth"):
                 gt, boxes_gt = (ground_truth(world, me, sc, visible, assets) if replay is None else
                                 replay.once(("ground_truth", me, frozenset(visible)),
                                             partial(ground_truth, world, me, sc, visible, assets)))
+            if sender_check is not None:  # the map's drivable area is map knowledge, not the frame's ground truth
+                with timer.stage("consistency"):
+                    inp, _ = sender_check.check(k, inp, gt["road"])
             preds = predict_all(models, inp, sc.bev.cells, precision, memo, pool,
                                 cost=None if pool is None else timer.method_ms())
             for m, pred in preds.items():

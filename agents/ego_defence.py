@@ -22,13 +22,13 @@ class SenderCheck:
     sc: Scenario
     model: nn.Module
     precision: Precision = "fp32"
-    # sender -> per frame compared: (frame, road, vehicle_m2, shared_m2, flagged, road_corr)
-    frames: dict[str, list[tuple[int, float, float, float, bool, float]]] = field(default_factory=dict)
+    # sender -> per frame compared: (frame, road, vehicle_m2, shared_m2, flagged, road_corr, road_vs_map)
+    frames: dict[str, list[tuple]] = field(default_factory=dict)
     excluded: int = 0  # sender-frames the defence fused without
 
-    def check(self, k: int, inp: FusionInputs) -> tuple[FusionInputs, set[str]]:
+    def check(self, k: int, inp: FusionInputs, road_map: np.ndarray | None = None) -> tuple[FusionInputs, set[str]]:
         """Frame k: score and flag the senders; the inputs every method fuses (without the flagged ones when the
-        defence excludes) and the flagged senders."""
+        defence excludes) and the flagged senders. `road_map`: the drivable area of the ego's map on its grid."""
         cfg = self.sc.defence
         ego = inp.senders[0]
         scores: dict[str, list[Disagreement]] = {}
@@ -36,7 +36,7 @@ class SenderCheck:
         for kind, maps in self._maps(inp).items():  # flagged on any kind it sent
             poses = inp.poses_by_kind.get(kind, inp.rel_poses)
             rel = {s: poses[inp.senders.index(s)] for s in maps}
-            frame_scores, frame_flagged = check_frame(maps, rel, ego, self.sc.bev.size_m, cfg)
+            frame_scores, frame_flagged = check_frame(maps, rel, ego, self.sc.bev.size_m, cfg, road_map)
             hits |= frame_flagged
             for s, d in frame_scores.items():
                 scores.setdefault(s, []).append(d)
@@ -48,7 +48,9 @@ class SenderCheck:
             self.frames.setdefault(s, []).append((k, max(d.road or 0.0 for d in judged),
                                                   max(d.vehicle_m2 or 0.0 for d in judged),
                                                   min(d.shared_m2 for d in judged), s in hits,
-                                                  min(d.road_corr or 0.0 for d in judged)))
+                                                  min(d.road_corr or 0.0 for d in judged),
+                                                  max((d.road_vs_map for d in judged if d.road_vs_map is not None),
+                                                      default=None)))
             if s in hits:
                 flagged.add(s)
         if cfg.exclude and flagged:
@@ -75,7 +77,8 @@ class SenderCheck:
 
     def to_json(self) -> dict:
         """metrics.json `defence`: the settings, per sender its frames compared and flagged and its scores'
-        median and maximum, and the per-frame scores (frame, road, vehicle_m2, shared_m2, flagged, road_corr)."""
+        median and maximum, and the per-frame scores (frame, road, vehicle_m2, shared_m2, flagged, road_corr,
+        road_vs_map)."""
         cfg = self.sc.defence
         senders = {}
         for s, rows in sorted(self.frames.items()):

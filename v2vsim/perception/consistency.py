@@ -5,20 +5,25 @@ Signatures stop outsiders; they cannot stop an insider, a CAV with its genuine i
 (v2vsim/comm/misbehaviour.py injects such lies on purpose). This module scores each sender's content against the
 consensus of everyone else, in the spirit of CP-Guard's collaborative consistency (Hu et al., AAAI 2025): each agent's
 single-agent maps (vehicle, road, lane probabilities: its features decoded alone by the `none` model, or late
-fusion's outputs as sent) are warped into the ego grid with the pose it claims; for sender s the reference at a cell
-is the mean map of the other agents (the ego always among them) that are within `near_m` of the cell, and s is
-compared where it is near too:
+fusion's outputs as sent) are warped into the ego grid with the pose it claims and judged two ways:
 
-    road(s)       = mean over shared cells of |road_s - road_ref|          a moved, turned, mirrored, scaled or
-                                                                           zeroed map misplaces the road
-    vehicle_m2(s) = area of shared cells where |veh_s - veh_ref| > 0.5      a vehicle added or removed where the
-                                                                           majority of the others see the cell
+    road_vs_map(s) = mean |road_s - map| over the cells near s      the map is the drivable area of the HD map the
+                     less the ego's own over the cells near it      ego plans on (map knowledge, not the frame's
+                                                                    truth); a moved, turned, mirrored, scaled or
+                                                                    zeroed map misplaces the road; an honest one is
+                                                                    about as wrong as the ego's own model
+    vehicle_m2(s)  = area of the cells near s and near another      a vehicle added or removed where others see
+                     agent where |veh_s - veh_ref| > 0.5            the cell: veh_ref is the mean vehicle map of the
+                                                                    other agents near the cell (the ego among them)
 
-A sender is flagged at a frame when either exceeds its threshold (DefenceConfig), calibrated on clean runs of
-tuning seeds; with fewer than `min_shared_m2` of shared cells there is no evidence and nothing is flagged. A liar
-pulls the consensus too: the most disagreeing flagged sender is left out of every reference and the others are
-judged again (check_frame), so an honest sender is not flagged for disagreeing with a liar. What it
-cannot see, by construction: a lie about cells no other agent is near (a vehicle hidden where only the liar sees).
+`near`: within `near_m` of the agent and on its grid. A sender is flagged at a frame when either exceeds its
+threshold (DefenceConfig), calibrated on clean runs of tuning seeds; with fewer than `min_shared_m2` of shared
+cells there is no evidence and nothing is flagged. A liar pulls the vehicle consensus too: the most disagreeing
+flagged sender is left out of every reference and the others are judged again (check_frame), so an honest sender
+is not flagged for disagreeing with a liar where only the two of them see. Also recorded, not judged by: `road`
+and `road_corr`, the sender's road against the others' (on networks the road model never saw, honest agents'
+road maps disagree with each other as much as a lie does: docs/results.md "A lying CAV"). What it cannot see, by
+construction: a vehicle lie about cells no other agent is near (a vehicle hidden where only the liar sees).
 
 The defence (`defence.exclude`) fuses every method without the senders flagged at that frame.
 """
@@ -53,11 +58,17 @@ class Disagreement:
     vehicle_m2: float | None
     shared_m2: float
     road_corr: float | None = None  # Pearson correlation of the road maps over the shared cells (0: a flat map)
+    # against the map the ego knows (its HD map's drivable area): the sender's mean |road - map| over the cells near
+    # it, less the ego's own over the cells near the ego (how much worse than the ego's own road it is)
+    road_vs_map: float | None = None
 
     def flagged(self, cfg: DefenceConfig) -> bool:
-        if self.road is None or self.vehicle_m2 is None:
+        """Past a threshold: its road worse against the map than the ego's own by road_threshold, or its vehicles
+        unlike the others' on more than vehicle_threshold_m2."""
+        if self.vehicle_m2 is None:
             return False
-        return self.road > cfg.road_threshold or self.vehicle_m2 > cfg.vehicle_threshold_m2
+        road_bad = self.road_vs_map is not None and self.road_vs_map > cfg.road_threshold
+        return road_bad or self.vehicle_m2 > cfg.vehicle_threshold_m2
 
 
 @torch.no_grad()
@@ -77,7 +88,8 @@ def decode_alone(model: nn.Module, features: dict[str, np.ndarray], precision: P
 
 
 def disagreements(maps: dict[str, np.ndarray], poses: dict[str, np.ndarray], ego: str, size_m: float,
-                  near_m: float, ignore: frozenset[str] = frozenset()) -> dict[str, Disagreement]:
+                  near_m: float, ignore: frozenset[str] = frozenset(), road_map: np.ndarray | None = None
+                  ) -> dict[str, Disagreement]:
     """Every sender's (not the ego's) Disagreement with the consensus of the others, `ignore`d senders left out
     of every reference (they are still scored).
 
@@ -97,6 +109,13 @@ def disagreements(maps: dict[str, np.ndarray], poses: dict[str, np.ndarray], ego
     fwd, left = centre[:, None], centre[None, :]  # a cell's (forward, left) in the ego frame, [S, 1] and [1, S]
     near = torch.stack([inside[i] & ((fwd - rel[i, 0]) ** 2 + (left - rel[i, 1]) ** 2 <= near_m ** 2)
                         for i in range(len(names))]).float()  # [L, S, S]
+    vs_map = [None] * len(names)
+    if road_map is not None:  # [S', S'] bool, the ego grid: each agent's road against the map near it
+        known = F.adaptive_avg_pool2d(torch.from_numpy(np.asarray(road_map, np.float32))[None, None], cells)[0, 0]
+        err = [float((warped[i, ROAD] - known).abs()[near[i] > 0].mean()) if near[i].sum() > 0 else None
+               for i in range(len(names))]
+        if err[0] is not None:
+            vs_map = [None if e is None else round(e - err[0], 4) for e in err]
     voters = torch.tensor([s not in ignore for s in names], dtype=torch.float32)[:, None, None]  # [L, 1, 1]
     total_near = (near * voters).sum(0)  # [S, S]
     total_maps = (warped * (near * voters)[:, None]).sum(0)  # [3, S, S]
@@ -107,7 +126,7 @@ def disagreements(maps: dict[str, np.ndarray], poses: dict[str, np.ndarray], ego
         shared = (near[i] > 0) & (others > 0)  # [S, S]
         shared_m2 = float(shared.sum()) * res * res
         if shared_m2 == 0:
-            out[s] = Disagreement(None, None, 0.0)
+            out[s] = Disagreement(None, None, 0.0, None, vs_map[i])
             continue
         ref = (total_maps - warped[i] * mine) / others.clamp(min=1)  # [3, S, S] mean of the others near
         diff = (warped[i] - ref).abs()
@@ -117,7 +136,7 @@ def disagreements(maps: dict[str, np.ndarray], poses: dict[str, np.ndarray], ego
         a, b = a - a.mean(), b - b.mean()
         norm = float(a.norm() * b.norm())
         corr = float((a * b).sum()) / norm if norm > 1e-9 else 0.0
-        out[s] = Disagreement(round(road, 4), round(vehicle_m2, 2), round(shared_m2, 1), round(corr, 4))
+        out[s] = Disagreement(round(road, 4), round(vehicle_m2, 2), round(shared_m2, 1), round(corr, 4), vs_map[i])
     return out
 
 
@@ -128,18 +147,18 @@ def judge(scores: dict[str, Disagreement], cfg: DefenceConfig) -> set[str]:
 
 def _excess(d: Disagreement, cfg: DefenceConfig) -> float:
     """How far past its thresholds a score is (> 1: flagged)."""
-    return max((d.road or 0.0) / max(cfg.road_threshold, 1e-9), (d.vehicle_m2 or 0.0) / max(cfg.vehicle_threshold_m2,
-                                                                                               1e-9))
+    return max((d.road_vs_map or 0.0) / max(cfg.road_threshold, 1e-9),
+               (d.vehicle_m2 or 0.0) / max(cfg.vehicle_threshold_m2, 1e-9))
 
 
 def check_frame(maps: dict[str, np.ndarray], poses: dict[str, np.ndarray], ego: str, size_m: float,
-                cfg: DefenceConfig) -> tuple[dict[str, Disagreement], set[str]]:
+                cfg: DefenceConfig, road_map: np.ndarray | None = None) -> tuple[dict[str, Disagreement], set[str]]:
     """One frame's verdict: each sender's scores and the senders flagged. A liar also pulls the consensus the
     honest senders are judged by, so the most disagreeing flagged sender is taken out of every reference and the
     rest judged again, until no one else is flagged (a greedy leave-one-out; the ego is never left out). A
     sender's scores are those of the last round it was judged in."""
     flagged: set[str] = set()
-    scores = disagreements(maps, poses, ego, size_m, cfg.near_m)
+    scores = disagreements(maps, poses, ego, size_m, cfg.near_m, road_map=road_map)
     final = dict(scores)
     while True:
         suspects = judge({s: d for s, d in scores.items() if s not in flagged}, cfg)
@@ -148,7 +167,7 @@ def check_frame(maps: dict[str, np.ndarray], poses: dict[str, np.ndarray], ego: 
         worst = max(suspects, key=lambda s: _excess(scores[s], cfg))
         flagged.add(worst)
         final[worst] = scores[worst]
-        scores = disagreements(maps, poses, ego, size_m, cfg.near_m, ignore=frozenset(flagged))
+        scores = disagreements(maps, poses, ego, size_m, cfg.near_m, ignore=frozenset(flagged), road_map=road_map)
         final.update({s: d for s, d in scores.items() if s not in flagged})
 
 

@@ -26,24 +26,44 @@ def _world_map(vehicle_at: list[tuple[float, float]] = ()) -> np.ndarray:
     return m
 
 
+ROAD_MAP = _world_map()[1] > 0.5  # the drivable area of the ego's map, on its grid
+
+
 def _scores(maps: dict[str, np.ndarray], poses: dict[str, tuple[float, float, float]]) -> dict[str, Disagreement]:
-    return disagreements(maps, {s: np.array(p, np.float32) for s, p in poses.items()}, "ego", SIZE, CFG.near_m)
+    return disagreements(maps, {s: np.array(p, np.float32) for s, p in poses.items()}, "ego", SIZE, CFG.near_m,
+                         road_map=ROAD_MAP)
 
 
 def test_an_honest_sender_at_the_ego_s_place_agrees_exactly() -> None:
     m = _world_map([(14.0, 0.0)])
     d = _scores({"ego": m, "cav1": m.copy()}, {"ego": (0, 0, 0), "cav1": (0, 0, 0)})["cav1"]
-    assert d.road == 0 and d.vehicle_m2 == 0 and d.shared_m2 > 2000
+    assert d.road == 0 and d.vehicle_m2 == 0 and d.road_vs_map == 0 and d.shared_m2 > 2000
     assert judge({"cav1": d}, CFG) == set()
 
 
-def test_a_claimed_pose_6_m_and_25_deg_off_misplaces_the_road_and_is_flagged() -> None:
+def _seen_from(x: float, y: float) -> np.ndarray:
+    """The world map as an honest agent at (x, y) heading along x sees it, in its own frame."""
+    m = np.zeros((3, CELLS, CELLS), np.float32)
+    c = SIZE / 2 - (np.arange(CELLS) + 0.5)
+    fwd, left = c[:, None] + x, c[None, :] + y  # world coordinates of its cells
+    m[1] = ((np.abs(left) < 4) & (fwd > -10)) | ((fwd > 10) & (fwd < 18))
+    return m
+
+
+def test_a_claimed_pose_6_m_and_25_deg_off_misplaces_the_road_against_the_map_and_is_flagged() -> None:
     m = _world_map()
-    honest = _scores({"ego": m, "cav1": m.copy()}, {"ego": (0, 0, 0), "cav1": (0, 0, 0)})["cav1"]
-    lying = _scores({"ego": m, "cav1": m.copy()}, {"ego": (0, 0, 0), "cav1": (6.0, 0, np.radians(25))})["cav1"]
-    assert honest.road == 0
-    assert lying.road > CFG.road_threshold
-    assert judge({"cav1": lying}, CFG) == {"cav1"}
+    honest = _scores({"ego": m, "cav1": _seen_from(5.0, 0)}, {"ego": (0, 0, 0), "cav1": (5.0, 0, 0)})["cav1"]
+    lying = _scores({"ego": m, "cav1": _seen_from(5.0, 0)}, {"ego": (0, 0, 0), "cav1": (11.0, 0, np.radians(25))})
+    assert honest.road_vs_map == pytest.approx(0, abs=0.01) and judge({"cav1": honest}, CFG) == set()
+    assert lying["cav1"].road_vs_map > CFG.road_threshold
+    assert judge(lying, CFG) == {"cav1"}
+
+
+def test_a_zeroed_map_has_no_road_where_the_map_has_one_and_is_flagged() -> None:
+    d = _scores({"ego": _world_map(), "cav1": np.zeros((3, CELLS, CELLS), np.float32)},
+                {"ego": (0, 0, 0), "cav1": (0, 0, 0)})["cav1"]
+    assert d.road_vs_map > CFG.road_threshold and d.vehicle_m2 == 0
+    assert judge({"cav1": d}, CFG) == {"cav1"}
 
 
 def test_a_vehicle_removed_where_the_ego_sees_it_is_flagged_by_its_area() -> None:
@@ -95,14 +115,17 @@ def test_without_drops_a_sender_from_every_kind_and_every_method() -> None:
 
 
 def test_a_liar_that_pulls_the_consensus_is_left_out_and_the_honest_sender_is_not_flagged() -> None:
-    """A map of road everywhere drags the mean the honest cav1 is judged by: in one round both are flagged;
-    check_frame takes the liar out of the reference and judges cav1 again."""
+    """cav1 and the liar are 30 m ahead; the liar paints vehicles on every cell. Beyond the ego's 30 m only the two
+    of them are near, so in one round each is flagged against the other; the liar disagrees on more cells (near the
+    ego too), is left out first, and cav1 judged again has no one to disagree with there."""
     m = _world_map()
-    liar = m.copy()
-    liar[1] = 1.0
-    maps = {"ego": m, "cav1": m.copy(), "cav2": liar}
-    poses = {s: np.zeros(3, np.float32) for s in maps}
-    assert judge(disagreements(maps, poses, "ego", SIZE, CFG.near_m), CFG) == {"cav1", "cav2"}
-    scores, flagged = check_frame(maps, poses, "ego", SIZE, CFG)
+    liar = _seen_from(30.0, 0)
+    liar[0] = 1.0
+    maps = {"ego": m, "cav1": _seen_from(30.0, 0), "cav2": liar}
+    poses = {"ego": np.zeros(3, np.float32), "cav1": np.array([30, 0, 0], np.float32),
+             "cav2": np.array([30, 0, 0], np.float32)}
+    first = disagreements(maps, poses, "ego", SIZE, CFG.near_m, road_map=ROAD_MAP)
+    assert judge(first, CFG) == {"cav1", "cav2"} and first["cav2"].vehicle_m2 > first["cav1"].vehicle_m2
+    scores, flagged = check_frame(maps, poses, "ego", SIZE, CFG, road_map=ROAD_MAP)
     assert flagged == {"cav2"}
-    assert scores["cav1"].road == 0 and scores["cav2"].road > CFG.road_threshold
+    assert scores["cav1"].vehicle_m2 == 0 and scores["cav2"].vehicle_m2 > CFG.vehicle_threshold_m2

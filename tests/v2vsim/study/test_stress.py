@@ -153,3 +153,18 @@ def test_a_stress_needs_a_cooperative_method_and_a_known_name(tmp_path: Path) ->
         family_sweeps(replace(args, methods=("oracle", "none")), cat)
     with pytest.raises(ConfigError, match="no stress 'jitter'; stresses: latency, pose"):
         family_sweeps(replace(args, stresses=("jitter",)), cat)
+
+
+def test_the_shipped_attack_stresses_are_valid_scenarios_in_every_family() -> None:
+    """`--stress attack,attack_defended` (issue 55): every lie is a valid `misbehaviour` of every family's scenario
+    (its liars non-ego CAVs there), and the defended axis switches the defence on for each of them."""
+    from v2vsim.config.load import load_scenario
+
+    cat = load_catalogue(Path(__file__).resolve().parents[3] / "scenarios" / "benchmark" / "catalogue.yaml")
+    plain, defended = cat.stress("attack"), cat.stress("attack_defended")
+    assert plain.level.values == defended.level.values and plain.level.values[0] == []
+    for family in cat.families:
+        for text in defended.level.texts:
+            sc = load_scenario(family.scenario, [f"{defended.level.key}={text}", *defended.sets])
+            assert sc.defence.exclude and all(set(lie.cavs) <= {"cav1", "cav2"} for lie in sc.misbehaviour)
+        assert not load_scenario(family.scenario, [f"misbehaviour={plain.level.texts[1]}"]).defence.on
