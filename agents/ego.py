@@ -367,9 +367,10 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
                 gt, boxes_gt = (ground_truth(world, me, sc, visible, assets) if replay is None else
                                 replay.once(("ground_truth", me, frozenset(visible)),
                                             partial(ground_truth, world, me, sc, visible, assets)))
+            flagged: set[str] = set()
             if sender_check is not None:  # the map's drivable area is map knowledge, not the frame's ground truth
                 with timer.stage("consistency"):
-                    inp, _ = sender_check.check(k, inp, gt["road"])
+                    inp, flagged = sender_check.check(k, inp, gt["road"])
             preds = predict_all(models, inp, sc.bev.cells, precision, memo, pool,
                                 cost=None if pool is None else timer.method_ms())
             for m, pred in preds.items():
@@ -386,7 +387,8 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
                 if drive is not None:
                     ack["command"] = {"accel": round(drive.plan.accel, 4)}
             # Scoring and recording run beside the next frame's fusion; frames stay in order.
-            after.submit(FusedFrame(k, world, gt, boxes_gt, preds, inp, sent, links, scans, drive))
+            after.submit(FusedFrame(k, world, gt, boxes_gt, preds, inp, sent, links, scans, drive, frozenset(flagged),
+                                    sc.defence.exclude))
             frames_done += 1
             summary.neighbours.append(near)
             timer.frame_done()

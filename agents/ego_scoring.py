@@ -41,6 +41,8 @@ class FusedFrame:
     links: list[LinkEvent]  # what each sender's feature link did
     scans: dict[str, Scan]  # sender -> its scan (recording only)
     drive: PilotStep | None = None  # closed loop: what the driven vehicle planned on this frame
+    flagged: frozenset[str] = frozenset()  # senders the misbehaviour check flagged (defence)
+    excluded: bool = False  # ... and fused without (defence.exclude)
 
 
 class AfterFusion:
@@ -89,7 +91,8 @@ class AfterFusion:
                     with self.timer.stage("recording"):
                         self.recorder.log_frame(job.k, job.world, job.gt, job.boxes_gt, job.preds, job.inp,
                                                 job.links, job.scans,
-                                                {m: self.scores[m].vehicle.last_iou for m in job.preds})
+                                                {m: self.scores[m].vehicle.last_iou for m in job.preds},
+                                                job.flagged, job.excluded)
                         if job.drive is not None:
                             self.recorder.log_drive(job.k, job.world, job.drive)
             except BaseException as e:  # noqa: BLE001 - handed to the main thread as is

@@ -88,8 +88,10 @@ class Recorder:
 
     def log_frame(self, k: int, world: WorldState, gt: dict[str, np.ndarray], boxes_gt: np.ndarray,
                   preds: dict[str, Prediction], inp: FusionInputs, links: list[LinkEvent],
-                  scans: dict[str, Scan], ious: dict[str, float | None]) -> None:
-        """ious: each method's visible-vehicle IoU of this frame as scoring computed it (None: empty union)."""
+                  scans: dict[str, Scan], ious: dict[str, float | None],
+                  flagged: frozenset[str] = frozenset(), excluded: bool = False) -> None:
+        """ious: each method's visible-vehicle IoU of this frame as scoring computed it (None: empty union);
+        flagged: the senders the misbehaviour check flagged this frame (`defence`), excluded from fusion or not."""
         rec = self.rec
         rec.set_time("frame", sequence=k)
         rec.set_time("sim_time", duration=world.time)
@@ -112,8 +114,11 @@ class Recorder:
         fates = ", ".join(f"{e.sender} {e.outcome.replace('_', ' ')}"
                           + (f" (fused age {e.age_ms:.0f} ms)" if e.age_ms is not None else "")
                           for e in links) or "no V2V messages"
-        rec.log("log/fusion", rr.TextLog(f"frame {k}: fused {', '.join(inp.senders)} | links: {fates}",
-                                         level=rr.TextLogLevel.INFO))
+        fused = [s for s in inp.senders if not (excluded and s in flagged)]
+        check = (f" | FLAGGED by the misbehaviour check: {', '.join(sorted(flagged))}"
+                 + (" (fused without)" if excluded else "")) if flagged else ""
+        rec.log("log/fusion", rr.TextLog(f"frame {k}: fused {', '.join(fused)} | links: {fates}{check}",
+                                         level=rr.TextLogLevel.WARN if flagged else rr.TextLogLevel.INFO))
 
     def _label(self, cav: str) -> str:
         label = f"{cav} {self.types[cav]}" if cav in self.types else cav
