@@ -4,12 +4,13 @@ run, per sender the frames compared and flagged, for metrics.json `defence` and 
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
 from torch import nn
 
-from v2vsim.config.schema import Scenario
+from v2vsim.config.schema import DefenceConfig, Scenario
 from v2vsim.perception.consistency import Disagreement, check_frame, decode_alone, without
 from v2vsim.perception.fuse import FusionInputs
 from v2vsim.perception.precision import Precision
@@ -25,11 +26,17 @@ class SenderCheck:
     # sender -> per frame compared: (frame, road, vehicle_m2, shared_m2, flagged, road_corr, road_vs_map)
     frames: dict[str, list[tuple]] = field(default_factory=dict)
     excluded: int = 0  # sender-frames the defence fused without
+    cfg: DefenceConfig = field(init=False)  # the thresholds this run judges by
+
+    def __post_init__(self) -> None:
+        cameras = self.sc.perception.modality == "camera" or any(g.modality == "camera" for g in self.sc.cavs.fleet)
+        # road_threshold null: the calibrated default of the run's sensors
+        self.cfg = dataclasses.replace(self.sc.defence, road_threshold=self.sc.defence.road_limit(cameras))
 
     def check(self, k: int, inp: FusionInputs, road_map: np.ndarray | None = None) -> tuple[FusionInputs, set[str]]:
         """Frame k: score and flag the senders; the inputs every method fuses (without the flagged ones when the
         defence excludes) and the flagged senders. `road_map`: the drivable area of the ego's map on its grid."""
-        cfg = self.sc.defence
+        cfg = self.cfg
         ego = inp.senders[0]
         scores: dict[str, list[Disagreement]] = {}
         hits: set[str] = set()
@@ -71,7 +78,7 @@ class SenderCheck:
         out = {}
         for s, rows in sorted(self.frames.items()):
             n = sum(r[4] for r in rows)
-            if n >= self.sc.defence.min_frames:
+            if n >= self.cfg.min_frames:
                 out[s] = (n, len(rows))
         return out
 
@@ -79,7 +86,7 @@ class SenderCheck:
         """metrics.json `defence`: the settings, per sender its frames compared and flagged and its scores'
         median and maximum, and the per-frame scores (frame, road, vehicle_m2, shared_m2, flagged, road_corr,
         road_vs_map)."""
-        cfg = self.sc.defence
+        cfg = self.cfg
         senders = {}
         for s, rows in sorted(self.frames.items()):
             road = np.array([r[1] for r in rows])

@@ -6,9 +6,11 @@ frame, road, vehicle_m2, shared_m2, flagged, road_corr, road_vs_map). Per lie (a
 TPR = the liar's frames flagged / its frames compared from the lie's first frame on. Over the clean runs: FPR =
 honest sender-frames flagged / compared, and the runs a sender was flagged in on `min_frames` frames or more (the
 status a user sees). With --road-threshold / --vehicle-threshold the flags are recomputed from the recorded scores
-(calibration); without, the flags the runs recorded are counted.
+(calibration; --camera-road-threshold for runs where a CAV has cameras); without, the flags the runs recorded
+are counted.
 
-    python scripts/detection_table.py RUN_DIR... [--road-threshold 0.1 --vehicle-threshold 40 --min-frames 3]
+    python scripts/detection_table.py RUN_DIR... [--road-threshold 0.2 --camera-road-threshold 0.45
+                                                  --vehicle-threshold 40 --min-frames 3]
 """
 
 from __future__ import annotations
@@ -34,6 +36,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("runs", nargs="+", type=Path, help="run directories (or folders holding them)")
     ap.add_argument("--road-threshold", type=float)
     ap.add_argument("--vehicle-threshold", type=float)
+    ap.add_argument("--camera-road-threshold", type=float,
+                    help="--road-threshold for runs where a CAV has cameras (default: --road-threshold)")
     ap.add_argument("--min-shared", type=float, default=100.0)
     ap.add_argument("--min-frames", type=int, default=3)
     a = ap.parse_args(argv)
@@ -50,6 +54,9 @@ def main(argv: list[str] | None = None) -> int:
         if "defence" not in m:
             continue
         lies = m.get("misbehaviour", [])
+        cameras = m.get("modality") == "camera" or any(
+            str(t).startswith("camera") for t in m.get("fleet", {}).get("cavs", {}).values())
+        road_t = a.camera_road_threshold if cameras and a.camera_road_threshold is not None else a.road_threshold
         liars = {c: lie for lie in lies for c in lie["cavs"]}
         most = 0
         for sender, v in m["defence"]["senders"].items():
@@ -57,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
             if sender in liars:
                 lie = liars[sender]
                 rows = [r for r in rows if r[0] >= lie["from_frame"]]
-                hits = [_flag(r, a.road_threshold, a.vehicle_threshold, a.min_shared) for r in rows]
+                hits = [_flag(r, road_t, a.vehicle_threshold, a.min_shared) for r in rows]
                 t = per_lie[lie["kind"]]
                 t[0] += sum(hits)
                 t[1] += len(hits)
@@ -66,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
                 if any(hits):
                     first[lie["kind"]].append(hits.index(True))
                 continue
-            hits = [_flag(r, a.road_threshold, a.vehicle_threshold, a.min_shared) for r in rows]
+            hits = [_flag(r, road_t, a.vehicle_threshold, a.min_shared) for r in rows]
             if not lies:
                 honest_n += len(hits)
                 honest_fp += sum(hits)

@@ -67,7 +67,7 @@ class Disagreement:
         unlike the others' on more than vehicle_threshold_m2."""
         if self.vehicle_m2 is None:
             return False
-        road_bad = self.road_vs_map is not None and self.road_vs_map > cfg.road_threshold
+        road_bad = self.road_vs_map is not None and self.road_vs_map > cfg.road_limit(False)
         return road_bad or self.vehicle_m2 > cfg.vehicle_threshold_m2
 
 
@@ -147,7 +147,7 @@ def judge(scores: dict[str, Disagreement], cfg: DefenceConfig) -> set[str]:
 
 def _excess(d: Disagreement, cfg: DefenceConfig) -> float:
     """How far past its thresholds a score is (> 1: flagged)."""
-    return max((d.road_vs_map or 0.0) / max(cfg.road_threshold, 1e-9),
+    return max((d.road_vs_map or 0.0) / max(cfg.road_limit(False), 1e-9),
                (d.vehicle_m2 or 0.0) / max(cfg.vehicle_threshold_m2, 1e-9))
 
 
