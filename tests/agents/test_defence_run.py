@@ -1,6 +1,7 @@
 """The misbehaviour check and defence in a real run (issue 55 items 2-3, `defence`): on a clean run the check flags
 no one and changes no score; a CAV that scales its map x8 is flagged from the first frame it shares cells with the
-ego, the run says so, and with `defence.exclude` CoBEVT's vehicle IoU is back within 0.02 of the clean run's."""
+ego, the run says so, and its recording replayed with `defence.exclude` (receiver-side) has CoBEVT's vehicle IoU
+back within 0.02 of the clean run's."""
 
 from __future__ import annotations
 
@@ -38,8 +39,14 @@ def test_the_check_flags_a_liar_and_the_defence_fuses_without_it(tmp_path: Path)
     assert checked["defence"]["senders"]["cav1"]["frames_compared"] == 6
     assert "**Misbehaviour check** (`defence`, detection only" in checked_report
 
-    attacked, _ = _run(tmp_path / "attacked", LIE, "defence.detect=true")
-    defended, report = _run(tmp_path / "defended", LIE, "defence.exclude=true")
+    attacked, _ = _run(tmp_path / "attacked", LIE, "defence.detect=true", "output.record_messages=true")
+    # the defence is receiver-side: the attacked run's recording replayed with it on (`v2vsim evaluate`)
+    r = subprocess.run([sys.executable, "-m", "v2vsim.cli", "evaluate", str(tmp_path / "attacked"), "--set",
+                        "defence.exclude=true", "--out", str(tmp_path / "defended")],
+                       capture_output=True, text=True, timeout=300, cwd=REPO)
+    assert r.returncode == 0, r.stderr[-3000:]
+    defended = json.loads((tmp_path / "defended" / "metrics.json").read_text())
+    report = (tmp_path / "defended" / "report.md").read_text()
     for doc in (attacked, defended):
         cav1 = doc["defence"]["senders"]["cav1"]
         assert cav1["first_flagged"] == 0 and cav1["frames_flagged"] == 6
