@@ -112,10 +112,14 @@ def explain(status: str) -> str | None:
     """One sentence for report.md under a status that is not `complete` and not self-explanatory."""
     if not is_degraded(status):
         return None
+    if as_configured(status):
+        return ("Degraded: the misbehaviour check (`defence`) flagged a sender whose maps disagreed with the "
+                "others': it may have lied. The run itself went as configured, so a sweep counts its scores; "
+                "they are those of a run with that sender in it (fused without it in the flagged frames when "
+                "`defence.exclude` is on).")
     return ("Degraded: the run went through every frame, but not as configured (a lost CAV sent nothing from "
-            "the frame named; a method with no score scored no frame; a sender that disagreed with the others "
-            "may have lied, `defence`), so its scores are not those of a clean run: leave it out of comparisons "
-            "or run it again (a sweep leaves it out of its intervals).")
+            "the frame named; a method with no score scored no frame), so its scores are not those of a clean "
+            "run: leave it out of comparisons or run it again (a sweep leaves it out of its intervals).")
 
 
 def terminal_line(statuses: Mapping[str, str], report: str) -> str:

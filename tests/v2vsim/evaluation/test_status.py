@@ -81,3 +81,12 @@ def test_a_run_degraded_only_by_flagged_senders_went_as_configured() -> None:
     assert not as_configured("degraded: methods with no score: late")
     assert not as_configured("interrupted after 3 frames")
     assert not as_configured(None)
+
+
+def test_the_report_explains_a_flagged_sender_without_telling_to_drop_the_run() -> None:
+    from v2vsim.evaluation.status import explain
+
+    flagged = explain("degraded: cav1 disagreed in 46 of 57 frames")
+    assert flagged is not None and "`defence`" in flagged and "a sweep counts its scores" in flagged
+    lost = explain("degraded: cav2 lost from frame 12; cav1 disagreed in 5 of 9 frames")
+    assert lost is not None and "leave it out of comparisons" in lost
