@@ -26,6 +26,7 @@ class SenderCheck:
     # sender -> per frame compared: (frame, road, vehicle_m2, shared_m2, flagged, road_corr, road_vs_map)
     frames: dict[str, list[tuple]] = field(default_factory=dict)
     excluded: int = 0  # sender-frames the defence fused without
+    excluded_unjudged: int = 0  # ... and, with defence.unjudged: exclude, those it had no evidence on
     cfg: DefenceConfig = field(init=False)  # the thresholds this run judges by
 
     def __post_init__(self) -> None:
@@ -48,10 +49,12 @@ class SenderCheck:
             for s, d in frame_scores.items():
                 scores.setdefault(s, []).append(d)
         flagged: set[str] = set()
+        unjudged = {s for s in [*inp.features, *inp.outputs, *inp.points] if s != ego}
         for s, ds in scores.items():
             judged = [d for d in ds if d.road is not None and d.shared_m2 >= cfg.min_shared_m2]
             if not judged:  # too few shared cells in every kind: no evidence either way
                 continue
+            unjudged.discard(s)
             self.frames.setdefault(s, []).append((k, max(d.road or 0.0 for d in judged),
                                                   max(d.vehicle_m2 or 0.0 for d in judged),
                                                   min(d.shared_m2 for d in judged), s in hits,
@@ -60,9 +63,11 @@ class SenderCheck:
                                                       default=None)))
             if s in hits:
                 flagged.add(s)
-        if cfg.exclude and flagged:
+        drop = flagged | (unjudged if cfg.unjudged == "exclude" else set())
+        if cfg.exclude and drop:
             self.excluded += len(flagged)
-            return without(inp, flagged), flagged
+            self.excluded_unjudged += len(drop - flagged)
+            return without(inp, drop), flagged
         return inp, flagged
 
     def _maps(self, inp: FusionInputs) -> dict[str, dict[str, np.ndarray]]:
@@ -102,4 +107,5 @@ class SenderCheck:
                 "vehicle_threshold_m2": cfg.vehicle_threshold_m2, "min_shared_m2": cfg.min_shared_m2,
                 "min_frames": cfg.min_frames, "flagged": {s: {"frames": n, "of": m}
                                                           for s, (n, m) in self.flagged_counts().items()},
-                "excluded_sender_frames": self.excluded, "senders": senders}
+                "excluded_sender_frames": self.excluded, "unjudged": cfg.unjudged,
+                "excluded_unjudged_sender_frames": self.excluded_unjudged, "senders": senders}

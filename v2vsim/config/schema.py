@@ -346,6 +346,9 @@ class DefenceConfig:
     vehicle_threshold_m2: float = _f(40.0, ">= 0 (m^2 of shared cells where the sender and the others' mean "
                                            "differ on a vehicle by more than 0.5)", _nonneg)
     min_shared_m2: float = _f(100.0, ">= 0 (m^2: fewer shared cells is no evidence, nothing is flagged)", _nonneg)
+    # with exclude: a sender that shares too few cells with the others to be judged this frame is fused ("fuse") or
+    # left out like a flagged one ("exclude": no lie goes unchallenged, nor does a far honest sender's help)
+    unjudged: Literal["fuse", "exclude"] = "fuse"
     min_frames: int = _f(3, ">= 1 (frames a sender is flagged in before the run's status says so)",
                          lambda v: v >= 1)
 

@@ -1,0 +1,53 @@
+"""agents.ego_defence.SenderCheck on hand-made late-fusion outputs (no model runs): what the defence leaves out of
+a frame, flagged senders and, with `defence.unjudged: exclude`, the senders it had no evidence on."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from agents.ego_defence import SenderCheck
+from v2vsim.config.load import load_scenario
+from v2vsim.perception.fuse import FusionInputs
+
+CELLS, SIZE = 100, 100.0
+
+
+def _road() -> np.ndarray:
+    c = SIZE / 2 - (np.arange(CELLS) + 0.5)
+    fwd, left = c[:, None], c[None, :]
+    return (np.abs(left) < 4) | ((fwd > 10) & (fwd < 18))
+
+
+def _inp() -> FusionInputs:
+    honest = np.zeros((3, CELLS, CELLS), np.float32)
+    honest[1] = _road()
+    liar = np.zeros_like(honest)  # no road anywhere: a zeroed map
+    none = np.zeros((0, 6), np.float32)
+    poses = np.array([[0, 0, 0], [0, 0, 0], [0, 0, 0], [0, 95.0, 0]], np.float32)  # cav3 far off to the left
+    return FusionInputs(senders=["cav0", "cav1", "cav2", "cav3"], rel_poses=poses,
+                        outputs={"cav0": (honest, none), "cav1": (honest.copy(), none), "cav2": (liar, none),
+                                 "cav3": (honest.copy(), none)})
+
+
+def _check(*sets: str) -> tuple[FusionInputs, set[str], SenderCheck]:
+    sc = load_scenario("scenarios/t_junction.yaml", ["bev.size_m=100", *sets])
+    check = SenderCheck(sc, model=None)  # type: ignore[arg-type]  # outputs only: nothing to decode
+    out, flagged = check.check(0, _inp(), road_map=_road())
+    return out, flagged, check
+
+
+def test_the_defence_leaves_out_the_flagged_sender_and_keeps_the_unjudged_one_by_default() -> None:
+    out, flagged, check = _check("defence.exclude=true")
+    assert flagged == {"cav2"} and set(out.outputs) == {"cav0", "cav1", "cav3"}
+    assert "cav3" not in check.frames  # too far to share a cell: not judged
+
+
+def test_unjudged_exclude_also_leaves_out_a_sender_it_has_no_evidence_on() -> None:
+    out, flagged, check = _check("defence.exclude=true", "defence.unjudged=exclude")
+    assert flagged == {"cav2"} and set(out.outputs) == {"cav0", "cav1"}
+    assert check.to_json()["excluded_unjudged_sender_frames"] == 1 and check.to_json()["excluded_sender_frames"] == 1
+
+
+def test_detection_alone_changes_nothing_fused() -> None:
+    out, flagged, _ = _check("defence.detect=true", "defence.unjudged=exclude")
+    assert flagged == {"cav2"} and set(out.outputs) == {"cav0", "cav1", "cav2", "cav3"}
