@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 import torch.nn.functional as F
-from torch import nn
+from torch import Tensor, nn
 
 from models.heads import segmentation_probabilities
 from models.warp import warp_to_ego
@@ -87,16 +87,21 @@ def decode_alone(model: nn.Module, features: dict[str, np.ndarray], precision: P
     return {s: maps[i].astype(np.float32) for i, s in enumerate(names)}
 
 
-def disagreements(maps: dict[str, np.ndarray], poses: dict[str, np.ndarray], ego: str, size_m: float,
-                  near_m: float, ignore: frozenset[str] = frozenset(), road_map: np.ndarray | None = None
-                  ) -> dict[str, Disagreement]:
-    """Every sender's (not the ego's) Disagreement with the consensus of the others, `ignore`d senders left out
-    of every reference (they are still scored).
+@dataclass(frozen=True)
+class _Warped:
+    """One frame's single-agent maps in the ego grid, warped once for every round of check_frame."""
 
-    maps: sender -> [3, S, S] single-agent probabilities in its own frame (the ego's among them); poses: sender ->
-    (dx, dy, dyaw) it claims in the ego's body frame. Row 0 of a grid is the front, column 0 the left."""
+    names: list[str]  # the ego first
+    warped: Tensor  # [L, 3, S, S]
+    near: Tensor  # [L, S, S] 1.0 where the agent is within near_m of the cell and the cell is on its grid
+    res: float  # metres per cell
+    vs_map: list[float | None]  # per agent, road_vs_map (None without a map, or for an agent near no cell)
+
+
+def _warp(maps: dict[str, np.ndarray], poses: dict[str, np.ndarray], ego: str, size_m: float, near_m: float,
+          road_map: np.ndarray | None) -> _Warped | None:
     if ego not in maps or len(maps) < 2:
-        return {}
+        return None
     names = [ego, *[s for s in maps if s != ego]]
     stack = torch.from_numpy(np.stack([maps[s] for s in names])).float()  # [L, 3, S, S]
     if stack.shape[-1] > MAX_CELLS:  # the warp's cost grows with S^2; the comparison needs no finer grid
@@ -109,24 +114,31 @@ def disagreements(maps: dict[str, np.ndarray], poses: dict[str, np.ndarray], ego
     fwd, left = centre[:, None], centre[None, :]  # a cell's (forward, left) in the ego frame, [S, 1] and [1, S]
     near = torch.stack([inside[i] & ((fwd - rel[i, 0]) ** 2 + (left - rel[i, 1]) ** 2 <= near_m ** 2)
                         for i in range(len(names))]).float()  # [L, S, S]
-    vs_map = [None] * len(names)
+    vs_map: list[float | None] = [None] * len(names)
     if road_map is not None:  # [S', S'] bool, the ego grid: each agent's road against the map near it
         known = F.adaptive_avg_pool2d(torch.from_numpy(np.asarray(road_map, np.float32))[None, None], cells)[0, 0]
         err = [float((warped[i, ROAD] - known).abs()[near[i] > 0].mean()) if near[i].sum() > 0 else None
                for i in range(len(names))]
         if err[0] is not None:
             vs_map = [None if e is None else round(e - err[0], 4) for e in err]
-    voters = torch.tensor([s not in ignore for s in names], dtype=torch.float32)[:, None, None]  # [L, 1, 1]
+    return _Warped(names, warped, near, res, vs_map)
+
+
+def _score(g: _Warped, ignore: frozenset[str]) -> dict[str, Disagreement]:
+    """Every sender's Disagreement with the mean of the other agents near each cell, `ignore`d ones left out of
+    every reference (they are still scored)."""
+    warped, near, res = g.warped, g.near, g.res
+    voters = torch.tensor([s not in ignore for s in g.names], dtype=torch.float32)[:, None, None]  # [L, 1, 1]
     total_near = (near * voters).sum(0)  # [S, S]
     total_maps = (warped * (near * voters)[:, None]).sum(0)  # [3, S, S]
     out: dict[str, Disagreement] = {}
-    for i, s in enumerate(names[1:], start=1):
+    for i, s in enumerate(g.names[1:], start=1):
         mine = near[i] * voters[i]
         others = total_near - mine
         shared = (near[i] > 0) & (others > 0)  # [S, S]
         shared_m2 = float(shared.sum()) * res * res
         if shared_m2 == 0:
-            out[s] = Disagreement(None, None, 0.0, None, vs_map[i])
+            out[s] = Disagreement(None, None, 0.0, None, g.vs_map[i])
             continue
         ref = (total_maps - warped[i] * mine) / others.clamp(min=1)  # [3, S, S] mean of the others near
         diff = (warped[i] - ref).abs()
@@ -136,8 +148,21 @@ def disagreements(maps: dict[str, np.ndarray], poses: dict[str, np.ndarray], ego
         a, b = a - a.mean(), b - b.mean()
         norm = float(a.norm() * b.norm())
         corr = float((a * b).sum()) / norm if norm > 1e-9 else 0.0
-        out[s] = Disagreement(round(road, 4), round(vehicle_m2, 2), round(shared_m2, 1), round(corr, 4), vs_map[i])
+        out[s] = Disagreement(round(road, 4), round(vehicle_m2, 2), round(shared_m2, 1), round(corr, 4), g.vs_map[i])
     return out
+
+
+def disagreements(maps: dict[str, np.ndarray], poses: dict[str, np.ndarray], ego: str, size_m: float,
+                  near_m: float, ignore: frozenset[str] = frozenset(), road_map: np.ndarray | None = None
+                  ) -> dict[str, Disagreement]:
+    """Every sender's (not the ego's) Disagreement with the consensus of the others, `ignore`d senders left out
+    of every reference (they are still scored).
+
+    maps: sender -> [3, S, S] single-agent probabilities in its own frame (the ego's among them); poses: sender ->
+    (dx, dy, dyaw) it claims in the ego's body frame. Row 0 of a grid is the front, column 0 the left; road_map:
+    the drivable area of the ego's map on its own grid (None: no road_vs_map)."""
+    g = _warp(maps, poses, ego, size_m, near_m, road_map)
+    return {} if g is None else _score(g, ignore)
 
 
 def judge(scores: dict[str, Disagreement], cfg: DefenceConfig) -> set[str]:
@@ -158,7 +183,10 @@ def check_frame(maps: dict[str, np.ndarray], poses: dict[str, np.ndarray], ego: 
     rest judged again, until no one else is flagged (a greedy leave-one-out; the ego is never left out). A
     sender's scores are those of the last round it was judged in."""
     flagged: set[str] = set()
-    scores = disagreements(maps, poses, ego, size_m, cfg.near_m, road_map=road_map)
+    g = _warp(maps, poses, ego, size_m, cfg.near_m, road_map)  # warped once; each round only re-scores
+    if g is None:
+        return {}, flagged
+    scores = _score(g, frozenset())
     final = dict(scores)
     while True:
         suspects = judge({s: d for s, d in scores.items() if s not in flagged}, cfg)
@@ -167,7 +195,7 @@ def check_frame(maps: dict[str, np.ndarray], poses: dict[str, np.ndarray], ego: 
         worst = max(suspects, key=lambda s: _excess(scores[s], cfg))
         flagged.add(worst)
         final[worst] = scores[worst]
-        scores = disagreements(maps, poses, ego, size_m, cfg.near_m, ignore=frozenset(flagged), road_map=road_map)
+        scores = _score(g, frozenset(flagged))
         final.update({s: d for s, d in scores.items() if s not in flagged})
 
 

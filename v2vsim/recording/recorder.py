@@ -114,7 +114,8 @@ class Recorder:
         fates = ", ".join(f"{e.sender} {e.outcome.replace('_', ' ')}"
                           + (f" (fused age {e.age_ms:.0f} ms)" if e.age_ms is not None else "")
                           for e in links) or "no V2V messages"
-        fused = [s for s in inp.senders if not (excluded and s in flagged)]
+        # what reached the fusion: a sender the defence left out (flagged, or unjudged) has no payload left
+        fused = [s for s in inp.senders if s in inp.features or s in inp.outputs or s in inp.points]
         check = (f" | FLAGGED by the misbehaviour check: {', '.join(sorted(flagged))}"
                  + (" (fused without)" if excluded else "")) if flagged else ""
         rec.log("log/fusion", rr.TextLog(f"frame {k}: fused {', '.join(fused)} | links: {fates}{check}",
