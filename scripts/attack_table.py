@@ -1,0 +1,203 @@
+"""The lying-CAV study in the closed loop (issue 55; docs/results.md "A lying CAV"): per lie and method, what the lie
+does to the drive and to the map it drove on, and what the defence buys back, with paired intervals.
+
+Reads a `v2vsim benchmark --profile stress --stress attack,attack_defended` directory: per family, the reference
+sweep (oracle and none, which read no message, so no lie reaches them) and the two stressed sweeps (every
+cooperative method x the lies, without and with `defence.exclude`). Episodes pair by the family's configuration and
+seed, so "attacked - clean" is the same method on the same episode with and without the lie, and "defended -
+attacked" the same lie with and without the defence. From each defended run's metrics.json (`defence.senders`): the
+liars' frames flagged (true positives) and the honest senders' (false positives, each one excluded from the fusion).
+
+    python scripts/attack_table.py DIR [--families F,G] [--boot 2000] [--csv OUT.csv]
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from v2vsim.study.leaderboard import ALL, BASELINE, ORACLE, Episode, compare, pooled, values_of
+from v2vsim.study.stats import DEFAULT_B, Interval
+from v2vsim.study.stress import level_episodes
+from v2vsim.study.summary import cell
+
+KEY = "misbehaviour"
+ATTACK, DEFENDED = "attack", "attack_defended"
+DEF = "+def"
+MEASURES = {"driving_score": "driving score", "collision": "collision rate", "iou_vehicle": "vehicle IoU"}
+Episodes = dict[Episode, dict[str, dict[str, float | None]]]
+
+
+def lie_text(level: list[dict[str, Any]]) -> str:
+    """A lie as a table reads it: `clean`, `cav1 remove_vehicle`, `cav1 scale x8`, `cav1 pose 6 m / 25 deg`."""
+    if not level:
+        return "clean"
+    parts = []
+    for lie in level:
+        kind = lie["kind"]
+        extra = (f" x{lie['factor']:g}" if "factor" in lie else "") + (
+            f" {lie['shift_m'][0]:g} m / {lie.get('rotate_deg', 0):g} deg" if "shift_m" in lie else "")
+        parts.append(f"{'+'.join(lie['cavs'])} {kind}{extra}")
+    return "; ".join(parts)
+
+
+def _levels(doc: dict[str, Any]) -> list[Any]:
+    for g in doc["grid"]:
+        if g["key"] == KEY:
+            return list(g["values"])
+    raise SystemExit(f"attack_table: the sweep has no `{KEY}` axis (grid keys: {[g['key'] for g in doc['grid']]})")
+
+
+def _load(path: Path) -> dict[str, Any]:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise SystemExit(f"attack_table: cannot read {path}: {e}") from e
+
+
+def family_episodes(fam_dir: Path) -> tuple[Episodes, list[Any], dict[tuple[str, int], list[tuple[int, ...]]]]:
+    """One family's episodes, the methods named `<method>@<lie index>` (and `...+def` with the defence on; oracle
+    and none as they are), the lies, and per (method, lie index) and defended run: the liars' frames flagged and
+    compared, the honest senders' frames flagged and compared."""
+    ref_dir = fam_dir / "reference" if (fam_dir / "reference").is_dir() else fam_dir / f"reference-{ATTACK}"
+    ref, att = _load(ref_dir / "sweep.json"), _load(fam_dir / ATTACK / "sweep.json")
+    dfd = _load(fam_dir / DEFENDED / "sweep.json") if (fam_dir / DEFENDED / "sweep.json").is_file() else None
+    levels = _levels(att)
+    merged: Episodes = {}
+    stressed = [(att, "")] + ([(dfd, DEF)] if dfd else [])
+    for i, level in enumerate(levels):
+        for ep, runs in level_episodes(fam_dir.name, ref, stressed, KEY, level).items():
+            for m, v in runs.items():
+                name = m if m in (ORACLE, BASELINE) else (m.replace(DEF, "") + f"@{i}" + (DEF if DEF in m else ""))
+                merged.setdefault(ep, {})[name] = v
+    flagged: dict[tuple[str, int], list[tuple[int, int, int, int]]] = {}
+    if dfd:
+        for row in dfd["rows"]:
+            i = next((j for j, lv in enumerate(levels) if json.dumps(lv, sort_keys=True)
+                      == json.dumps(row.get(KEY), sort_keys=True)), None)
+            if i is None or row.get("driving_method") in (None, ORACLE, BASELINE):
+                continue
+            liars = {c for lie in (row.get(KEY) or []) for c in lie["cavs"]}
+            mj = fam_dir / DEFENDED / row["run"] / "metrics.json" if row.get("run") else None
+            doc = json.loads(mj.read_text()) if mj and mj.is_file() else {}
+            senders = (doc.get("defence") or {}).get("senders", {})
+            n = [0, 0, 0, 0]  # liars' frames flagged, compared; honest senders' frames flagged, compared
+            for c, v in senders.items():
+                j = 0 if c in liars else 2
+                n[j] += v.get("frames_flagged", 0)
+                n[j + 1] += v.get("frames_compared", 0)
+            flagged.setdefault((row["driving_method"], i), []).append(tuple(n))
+    return merged, levels, flagged
+
+
+def _mean(eps: Episodes, m: str, k: str) -> float | None:
+    vals = list(values_of(eps, m, k).values())
+    return float(np.mean(vals)) if vals else None
+
+
+def _f(v: float | None) -> str:
+    return "-" if v is None else f"{v:.3f}"
+
+
+def _rate(eps: Episodes, m: str) -> str:
+    vals = list(values_of(eps, m, "collision").values())
+    return f"{int(sum(vals))}/{len(vals)}" if vals else "-"
+
+
+def _share(runs: list[tuple[int, ...]] | None, j: int) -> str:
+    """Frames flagged / compared over the defended runs (j 0: the liars, 2: the honest senders), and in how many
+    runs a sender of that kind was flagged at all."""
+    if not runs:
+        return "-"
+    n, of = sum(r[j] for r in runs), sum(r[j + 1] for r in runs)
+    k = sum(r[j] > 0 for r in runs)
+    return "-" if not of else f"{n}/{of} ({k} run{'' if k == 1 else 's'})"
+
+
+def tables(eps: Episodes, levels: list[Any], flagged: dict[tuple[str, int], list[tuple[int, ...]]], scope: str,
+           boot: int) -> tuple[list[str], list[list[Any]]]:
+    """Markdown lines and CSV rows for one scope."""
+    methods = sorted({m.split("@")[0] for runs in eps.values() for m in runs if "@" in m})
+    n = len(eps)
+    lines = [f"### {scope}: {n} episodes", "",
+             "References (read no message, so no lie reaches them): " + ", ".join(
+                 f"{m} driving score {_f(_mean(eps, m, 'driving_score'))}, collisions {_rate(eps, m)}"
+                 for m in (ORACLE, BASELINE)) + ".", "",
+             "| lie | method | driving score clean / attacked / defended | attacked - clean | defended - attacked "
+             "| collisions clean / att. / def. | vehicle IoU clean / att. / def. | IoU attacked - clean "
+             "| IoU defended - attacked | liar frames flagged (def.) | honest frames flagged (def.) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    rows: list[list[Any]] = []
+    for i, level in enumerate(levels):
+        for m in methods:
+            clean, att, dfd = f"{m}@0", f"{m}@{i}", f"{m}@{i}{DEF}"
+            ds = [_mean(eps, x, "driving_score") for x in (clean, att, dfd)]
+            iou = [_mean(eps, x, "iou_vehicle") for x in (clean, att, dfd)]
+            vs: dict[str, Interval | None] = {}
+            for k in MEASURES:
+                vs[f"{k}|att-clean"] = compare(eps, att, clean, k, f"attack|{scope}|{i}", boot).diff if i else None
+                vs[f"{k}|def-att"] = compare(eps, dfd, att, k, f"attack|{scope}|{i}", boot).diff
+            fl = flagged.get((m, i))
+            lines.append(
+                f"| {lie_text(level)} | {m} | {' / '.join(_f(v) for v in ds)} | "
+                f"{cell(vs['driving_score|att-clean'], True)} | {cell(vs['driving_score|def-att'], True)} | "
+                f"{' / '.join(_rate(eps, x) for x in (clean, att, dfd))} | {' / '.join(_f(v) for v in iou)} | "
+                f"{cell(vs['iou_vehicle|att-clean'], True)} | {cell(vs['iou_vehicle|def-att'], True)} | "
+                f"{_share(fl, 0)} | {_share(fl, 2)} |")
+            for k in MEASURES:
+                for which in ("att-clean", "def-att"):
+                    iv = vs[f"{k}|{which}"]
+                    rows.append([scope, lie_text(level), m, k, which,
+                                 *(["", "", ""] if iv is None else [round(iv.mean, 6), iv.lo, iv.hi])])
+    lines.append("")
+    return lines, rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("dir", type=Path, help="the benchmark's --out directory")
+    ap.add_argument("--families", help="comma-separated (default: every family with an attack sweep)")
+    ap.add_argument("--boot", type=int, default=DEFAULT_B)
+    ap.add_argument("--csv", type=Path, help="also write the intervals here")
+    a = ap.parse_args(argv)
+    fams = sorted(p.parent.parent for p in (a.dir / "families").glob(f"*/{ATTACK}/sweep.json"))
+    if a.families:
+        want = set(a.families.split(","))
+        fams = [f for f in fams if f.name in want]
+    if not fams:
+        print(f"attack_table: no {a.dir}/families/*/{ATTACK}/sweep.json", file=sys.stderr)
+        return 2
+    per_family, levels = {}, None
+    flagged_all: dict[tuple[str, int], list[tuple[int, ...]]] = {}
+    out: list[str] = []
+    rows: list[list[Any]] = []
+    for f in fams:
+        eps, lv, flagged = family_episodes(f)
+        per_family[f.name] = eps
+        levels = levels or lv
+        for k, v in flagged.items():
+            flagged_all.setdefault(k, []).extend(v)
+        md, r = tables(eps, lv, flagged, f.name, a.boot)
+        out += md
+        rows += r
+    if len(fams) > 1:
+        md, r = tables(pooled(per_family), levels, flagged_all, ALL, a.boot)
+        out += md
+        rows += r
+    print("\n".join(out))
+    if a.csv:
+        with a.csv.open("w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(["scope", "lie", "method", "measure", "difference", "mean", "lo", "hi"])
+            w.writerows(rows)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
