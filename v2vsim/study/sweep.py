@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import TextIO
 
 from v2vsim.config import ConfigError, check_output_dir, find_scenario, load_scenario
-from v2vsim.evaluation.status import COMPLETE
+from v2vsim.evaluation.status import COMPLETE, as_configured
 from v2vsim.study.grid import Axis, Point, base_overrides, parse_axes, parse_seeds, points, validate
 from v2vsim.study.plan import RunSpec, plan, replay_refusal
 from v2vsim.study.rows import collect, counted, methods_of
@@ -138,10 +138,14 @@ def sweep(args: SweepArgs, start: Callable[[RunSpec], Job] | None = None, stream
             client.close()
     failed = [r for r in results if not r.ok]
     degraded = [r for r in results if r.ok and r.status != COMPLETE]
+    flagged = sum(as_configured(r.status) for r in degraded)  # degraded only by the misbehaviour check's flags
+    lost = len(degraded) - flagged
     where = "counted in" if args.include_degraded else "left out of"
     print(f"v2vsim sweep: {'interrupted' if interrupted else 'done'}: {sum(r.ok for r in results) - len(degraded)} "
           f"of {len(d.specs)} runs complete, "
-          + (f"{len(degraded)} degraded ({where} the intervals), " if degraded else "")
+          + (f"{flagged} with a sender flagged by the misbehaviour check (counted in the intervals), "
+             if flagged else "")
+          + (f"{lost} degraded ({where} the intervals), " if lost else "")
           + f"{len(failed)} failed; {paths[0]}", file=stream)
     kept = [s.out / "messages" for s in d.specs if s.records and (s.out / "messages").is_dir()]
     if kept:

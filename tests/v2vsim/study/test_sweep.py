@@ -296,6 +296,45 @@ def test_degraded_runs_are_rows_with_their_status_left_out_of_the_intervals_and_
     assert "**counted** in the tables" in (counted / "sweep.md").read_text()
 
 
+class FlaggingStarter(FakeStarter):
+    """Runs that go through every frame; in those of `flagged` the misbehaviour check flagged cav1 (issue 55)."""
+
+    def __init__(self, flagged: set[tuple[str, int]]) -> None:
+        super().__init__()
+        self.flagged = flagged
+
+    def __call__(self, spec: plan_mod.RunSpec) -> FakeJob:
+        job = super().__call__(spec)
+        if (spec.point.texts[0], spec.seed) in self.flagged:
+            doc = _fake_metrics(spec) | {"status": "degraded: cav1 disagreed in 7 of 40 frames"}
+            spec.out.joinpath("metrics.json").write_text(json.dumps(doc))
+        return job
+
+
+def test_a_run_degraded_only_by_a_flagged_sender_is_counted_and_said_to_be(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A run whose only degradation is the misbehaviour check's flag went as configured: the statistics count it,
+    and neither the terminal nor sweep.md may say it was left out."""
+    import io
+
+    from v2vsim.study import plots
+
+    monkeypatch.setattr(runs_mod.time, "sleep", lambda s: None)
+    monkeypatch.setattr(plots, "plot_all", lambda *a, **k: [])
+    out = tmp_path / "sweep"
+    log = io.StringIO()
+    assert sweep(_args(out), start=FlaggingStarter({("0", 1)}), stream=log) == 0
+    text = log.getvalue()
+    assert "5 of 6 runs complete, 1 with a sender flagged by the misbehaviour check (counted in the intervals), 0 " \
+           "failed" in text and "left out of" not in text
+    doc = json.loads((out / "sweep.json").read_text())
+    st = next(s for s in doc["stats"] if s["metric"] == "iou_vehicle" and s["point"] == {"comm.drop.p": 0})
+    assert st["methods"]["cobevt"]["seeds"] == 3
+    md = (out / "sweep.md").read_text()
+    assert "**Runs with a sender flagged**" in md and "- comm.drop.p=0 seed 1: degraded: cav1 disagreed" in md
+    assert "left out of the tables" not in md
+
+
 def test_two_keys_and_ctrl_c_keeps_what_finished(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     import io
 
