@@ -8,7 +8,10 @@ seed, so "attacked - clean" is the same method on the same episode with and with
 attacked" the same lie with and without the defence. From each defended run's metrics.json (`defence.senders`): the
 liars' frames flagged (true positives) and the honest senders' (false positives, each one excluded from the fusion).
 
-    python scripts/attack_table.py DIR [--families F,G] [--boot 2000] [--csv OUT.csv]
+    python scripts/attack_table.py DIR [--families F,G] [--boot 2000] [--csv OUT.csv] [--plot OUT.png]
+
+--plot: per lie, each method's vehicle IoU and collisions attacked and defended (bars), its clean run (a tick) and
+`none` (dashed), over every family given pooled.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ import argparse
 import csv
 import json
 import sys
+import textwrap
 from pathlib import Path
 from typing import Any
 
@@ -159,12 +163,48 @@ def tables(eps: Episodes, levels: list[Any], flagged: dict[tuple[str, int], list
     return lines, rows
 
 
+def plot(path: Path, eps: Episodes, levels: list[Any], title: str) -> None:
+    """Per lie (x), per method: attacked and defended bars of vehicle IoU and of collisions, the clean run's value as
+    a black tick over each pair, `none` dashed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    methods = sorted({m.split("@")[0] for runs in eps.values() for m in runs if "@" in m})
+    n = len(eps)
+    fig, axes = plt.subplots(1, 2, figsize=(13, 4.2))
+    width = 0.8 / (2 * len(methods))
+    xs = np.arange(len(levels))
+    for ax, k in zip(axes, ("iou_vehicle", "collision"), strict=True):
+        def value(m: str, measure: str = k) -> float:
+            v = _mean(eps, m, measure)
+            return np.nan if v is None else (v * n if measure == "collision" else v)
+
+        for j, m in enumerate(methods):
+            for h, (suffix, label, hatch) in enumerate((("", "attacked", ""), (DEF, "defended", "//"))):
+                off = (2 * j + h - len(methods) + 0.5) * width
+                bars = ax.bar(xs + off, [value(f"{m}@{i}{suffix}") for i in range(len(levels))], width,
+                              color=f"C{j}", alpha=0.9 if not h else 0.5, hatch=hatch, label=f"{m} {label}")
+                ax.plot([b.get_x() + b.get_width() / 2 for b in bars], [value(f"{m}@0")] * len(levels), "k_",
+                        markersize=10, label="the method's clean run" if j == 0 and h == 0 else None)
+        ax.axhline(value(BASELINE), color="black", linestyle="--", linewidth=1, label="none")
+        ax.set_xticks(xs, [textwrap.fill(lie_text(lv), 16) for lv in levels], fontsize=8)
+        ax.set_ylabel("vehicle IoU of the map driven on" if k == "iou_vehicle" else f"collisions (of {n} episodes)")
+    axes[0].legend(fontsize=7, ncol=2, loc="lower left")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("dir", type=Path, help="the benchmark's --out directory")
     ap.add_argument("--families", help="comma-separated (default: every family with an attack sweep)")
     ap.add_argument("--boot", type=int, default=DEFAULT_B)
     ap.add_argument("--csv", type=Path, help="also write the intervals here")
+    ap.add_argument("--plot", type=Path, help="also draw the study here (PNG)")
     a = ap.parse_args(argv)
     fams = sorted(p.parent.parent for p in (a.dir / "families").glob(f"*/{ATTACK}/sweep.json"))
     if a.families:
@@ -191,6 +231,10 @@ def main(argv: list[str] | None = None) -> int:
         out += md
         rows += r
     print("\n".join(out))
+    if a.plot:
+        everything = pooled(per_family) if len(fams) > 1 else per_family[fams[0].name]
+        plot(a.plot, everything, levels or [], f"a lying CAV in the closed loop: {', '.join(f.name for f in fams)}, "
+             f"{len(everything)} episodes")
     if a.csv:
         with a.csv.open("w", newline="") as fh:
             w = csv.writer(fh)

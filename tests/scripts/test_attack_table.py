@@ -55,8 +55,10 @@ def test_paired_differences_collisions_and_flags(tmp_path: Path) -> None:
         {"grid": [{"key": "control.method", "values": ["cobevt"]}, {"key": SPEED, "values": [8, 11]},
                   {"key": "misbehaviour", "values": LIES}], "rows": dfd}))
     out_csv = tmp_path / "t.csv"
-    out = subprocess.run([sys.executable, "scripts/attack_table.py", str(tmp_path), "--boot", "200", "--csv",
-                          str(out_csv)], cwd=REPO, capture_output=True, text=True, check=True).stdout
+    png = tmp_path / "study.png"
+    cmd = [sys.executable, "scripts/attack_table.py", str(tmp_path), "--boot", "200", "--csv", str(out_csv), "--plot",
+           str(png)]
+    out = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, check=True).stdout
     assert "### blind_pullout: 4 episodes" in out
     line = next(ln for ln in out.splitlines() if ln.startswith("| cav1 remove_vehicle | cobevt |"))
     cells = [c.strip() for c in line.split("|")[1:-1]]
@@ -68,6 +70,7 @@ def test_paired_differences_collisions_and_flags(tmp_path: Path) -> None:
     assert cells[9] == "80/160 (4 runs)"  # the liar
     assert cells[10] == "1/200 (1 run)"  # an honest sender flagged: a false positive
     assert "none driving score 0.800, collisions 0/4" in out
+    assert png.stat().st_size > 5000
     got = {(r["lie"], r["measure"], r["difference"]): float(r["mean"]) for r in csv.DictReader(out_csv.open())
            if r["mean"]}
     assert abs(got[("cav1 remove_vehicle", "iou_vehicle", "att-clean")] + 0.4) < 1e-9

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import csv
 import json
+import textwrap
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -251,15 +252,16 @@ def plot(out: Path, s: Stress, cs: Sequence[Curve], none_means: dict[str, float 
                 xs.append(x)
                 ys.append(mean)
                 ref = mean - v.diff.mean  # none's mean on the same episodes
-                lo.append(ref + v.diff.lo if v.diff.lo is not None else mean)
-                hi.append(ref + v.diff.hi if v.diff.hi is not None else mean)
+                # shown within the measure's range [0, 1]: none's mean plus the difference's bound can pass it
+                lo.append(max(0.0, ref + v.diff.lo) if v.diff.lo is not None else mean)
+                hi.append(min(1.0, ref + v.diff.hi) if v.diff.hi is not None else mean)
             if xs:
                 line = ax.plot(xs, ys, marker="o", label=c.method)[0]
                 ax.fill_between(xs, lo, hi, color=line.get_color(), alpha=0.12)
         if base is not None:
             ax.axhline(base, color="black", linestyle="--", linewidth=1, label="none")
-        ax.set_xlabel(f"{s.name} ({s.unit})")
-        ax.set_ylabel(f"{CURVE_MEASURES[k]} (95 % CI of the difference from none)")
+        ax.set_xlabel(textwrap.fill(f"{s.name} ({s.unit})", 48), fontsize=8)
+        ax.set_ylabel(textwrap.fill(f"{CURVE_MEASURES[k]} (95 % CI of the difference from none)", 36), fontsize=8)
     axes[0].legend(fontsize=7)
     fig.suptitle(f"where cooperation stops helping: {s.name}")
     fig.tight_layout()
