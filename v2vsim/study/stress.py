@@ -150,8 +150,10 @@ def curves(s: Stress, levels: Sequence[dict[str, Episodes]], boot: int = DEFAULT
         per_level = [in_scope(lv, scope) for lv in levels]
         methods = list(dict.fromkeys(m for eps in per_level for runs in eps.values() for m in runs
                                      if m not in (ORACLE, BASELINE)))
+        # one family: "overall" is that family's episodes, so it takes the same bootstrap draws (the same intervals)
+        tag = scopes[0] if scope == ALL and len(scopes) == 2 else scope
         for m in methods:
-            diffs = {k: tuple(compare(eps, m, BASELINE, k, f"{s.name}|{i}|{scope}", boot)
+            diffs = {k: tuple(compare(eps, m, BASELINE, k, f"{s.name}|{i}|{tag}", boot)
                               for i, eps in enumerate(per_level)) for k in CURVE_MEASURES}
             means = {k: tuple(_mean(eps, m, k) for eps in per_level) for k in CURVE_MEASURES}
             out.append(Curve(m, s.name, scope, diffs, means))

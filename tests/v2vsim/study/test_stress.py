@@ -168,3 +168,28 @@ def test_the_shipped_attack_stresses_are_valid_scenarios_in_every_family() -> No
             sc = load_scenario(family.scenario, [f"{defended.level.key}={text}", *defended.sets])
             assert sc.defence.exclude and all(set(lie.cavs) <= {"cav1", "cav2"} for lie in sc.misbehaviour)
         assert not load_scenario(family.scenario, [f"misbehaviour={plain.level.texts[1]}"]).defence.on
+
+
+def test_with_one_family_overall_is_that_family_to_the_last_digit() -> None:
+    """One family's "overall" holds the same episodes, so it must show the same intervals and breaking points (it
+    took other bootstrap draws, and a borderline level broke in one scope and not in the other)."""
+    from types import SimpleNamespace
+
+    from v2vsim.study.leaderboard import Episode
+    from v2vsim.study.stress import curves
+
+    rng = __import__("numpy").random.default_rng(0)
+
+    def level(gain: float) -> dict:
+        eps = {}
+        for seed in range(6):
+            base = float(rng.uniform(0.3, 0.6))
+            eps[Episode("pullout", "offset=1", seed)] = {
+                "none": {"driving_score": base, "iou_vehicle": base},
+                "late": {"driving_score": base + gain + float(rng.normal(0, 0.05)), "iou_vehicle": base + gain}}
+        return {"pullout": eps}
+
+    cs = curves(SimpleNamespace(name="latency"), [level(0.2), level(0.03), level(-0.1)], boot=200)
+    by = {c.scope: c for c in cs if c.method == "late"}
+    assert set(by) == {"pullout", "overall"}
+    assert by["overall"].diffs == by["pullout"].diffs and by["overall"].means == by["pullout"].means
