@@ -231,17 +231,22 @@ def test_fake_sweep_resumes_reruns_what_is_not_complete_and_reports_failures(tmp
 
 
 class DegradingStarter(FakeStarter):
-    """Runs that go through every frame; those in `degraded` lose cav1 at frame 1 (what the ego then says)."""
+    """Runs that go through every frame; those in `degraded` lose cav1 at frame 1 (what the ego then says), or with
+    `flagged` only have cav1 flagged by the misbehaviour check (issue 55)."""
 
-    def __init__(self, degraded: set[tuple[str, int]]) -> None:
+    def __init__(self, degraded: set[tuple[str, int]], flagged: bool = False) -> None:
         super().__init__()
         self.degraded = degraded
+        self.flagged = flagged
 
     def __call__(self, spec: plan_mod.RunSpec) -> FakeJob:
         job = super().__call__(spec)
         if (spec.point.texts[0], spec.seed) in self.degraded:
-            doc = _fake_metrics(spec) | {"status": "degraded: cav1 lost from frame 1", "lost_agents": {"cav1": 1}}
-            doc["methods"]["cobevt"]["iou_vehicle"] = 0.0  # what a lost neighbour costs: not a configured run's
+            if self.flagged:
+                doc = _fake_metrics(spec) | {"status": "degraded: cav1 disagreed in 7 of 40 frames"}
+            else:
+                doc = _fake_metrics(spec) | {"status": "degraded: cav1 lost from frame 1", "lost_agents": {"cav1": 1}}
+                doc["methods"]["cobevt"]["iou_vehicle"] = 0.0  # what a lost neighbour costs: not a configured run's
             spec.out.joinpath("metrics.json").write_text(json.dumps(doc))
         return job
 
@@ -296,21 +301,6 @@ def test_degraded_runs_are_rows_with_their_status_left_out_of_the_intervals_and_
     assert "**counted** in the tables" in (counted / "sweep.md").read_text()
 
 
-class FlaggingStarter(FakeStarter):
-    """Runs that go through every frame; in those of `flagged` the misbehaviour check flagged cav1 (issue 55)."""
-
-    def __init__(self, flagged: set[tuple[str, int]]) -> None:
-        super().__init__()
-        self.flagged = flagged
-
-    def __call__(self, spec: plan_mod.RunSpec) -> FakeJob:
-        job = super().__call__(spec)
-        if (spec.point.texts[0], spec.seed) in self.flagged:
-            doc = _fake_metrics(spec) | {"status": "degraded: cav1 disagreed in 7 of 40 frames"}
-            spec.out.joinpath("metrics.json").write_text(json.dumps(doc))
-        return job
-
-
 def test_a_run_degraded_only_by_a_flagged_sender_is_counted_and_said_to_be(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A run whose only degradation is the misbehaviour check's flag went as configured: the statistics count it,
@@ -323,7 +313,7 @@ def test_a_run_degraded_only_by_a_flagged_sender_is_counted_and_said_to_be(
     monkeypatch.setattr(plots, "plot_all", lambda *a, **k: [])
     out = tmp_path / "sweep"
     log = io.StringIO()
-    assert sweep(_args(out), start=FlaggingStarter({("0", 1)}), stream=log) == 0
+    assert sweep(_args(out), start=DegradingStarter({("0", 1)}, flagged=True), stream=log) == 0
     text = log.getvalue()
     assert "5 of 6 runs complete, 1 with a sender flagged by the misbehaviour check (counted in the intervals), 0 " \
            "failed" in text and "left out of" not in text
