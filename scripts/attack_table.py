@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from v2vsim.study.leaderboard import ALL, BASELINE, ORACLE, Episode, compare, pooled, values_of
+from v2vsim.study.leaderboard import ALL, BASELINE, ORACLE, Episode, compare, mean_of, pooled, values_of
 from v2vsim.study.stats import DEFAULT_B, Interval
 from v2vsim.study.stress import level_episodes
 from v2vsim.study.summary import cell
@@ -82,9 +82,9 @@ def family_episodes(fam_dir: Path) -> tuple[Episodes, list[Any], dict[tuple[str,
                 merged.setdefault(ep, {})[name] = v
     flagged: dict[tuple[str, int], list[tuple[int, int, int, int]]] = {}
     if dfd:
+        index = {json.dumps(lv, sort_keys=True): j for j, lv in enumerate(levels)}
         for row in dfd["rows"]:
-            i = next((j for j, lv in enumerate(levels) if json.dumps(lv, sort_keys=True)
-                      == json.dumps(row.get(KEY), sort_keys=True)), None)
+            i = index.get(json.dumps(row.get(KEY), sort_keys=True))
             if i is None or row.get("driving_method") in (None, ORACLE, BASELINE):
                 continue
             liars = {c for lie in (row.get(KEY) or []) for c in lie["cavs"]}
@@ -98,11 +98,6 @@ def family_episodes(fam_dir: Path) -> tuple[Episodes, list[Any], dict[tuple[str,
                 n[j + 1] += v.get("frames_compared", 0)
             flagged.setdefault((row["driving_method"], i), []).append(tuple(n))
     return merged, levels, flagged
-
-
-def _mean(eps: Episodes, m: str, k: str) -> float | None:
-    vals = list(values_of(eps, m, k).values())
-    return float(np.mean(vals)) if vals else None
 
 
 def _f(v: float | None) -> str:
@@ -131,7 +126,7 @@ def tables(eps: Episodes, levels: list[Any], flagged: dict[tuple[str, int], list
     n = len(eps)
     lines = [f"### {scope}: {n} episodes", "",
              "References (read no message, so no lie reaches them): " + ", ".join(
-                 f"{m} driving score {_f(_mean(eps, m, 'driving_score'))}, collisions {_rate(eps, m)}"
+                 f"{m} driving score {_f(mean_of(eps, m, 'driving_score'))}, collisions {_rate(eps, m)}"
                  for m in (ORACLE, BASELINE)) + ".", "",
              "| lie | method | driving score clean / attacked / defended | attacked - clean | defended - attacked "
              "| collisions clean / att. / def. | vehicle IoU clean / att. / def. | IoU attacked - clean "
@@ -141,8 +136,8 @@ def tables(eps: Episodes, levels: list[Any], flagged: dict[tuple[str, int], list
     for i, level in enumerate(levels):
         for m in methods:
             clean, att, dfd = f"{m}@0", f"{m}@{i}", f"{m}@{i}{DEF}"
-            ds = [_mean(eps, x, "driving_score") for x in (clean, att, dfd)]
-            iou = [_mean(eps, x, "iou_vehicle") for x in (clean, att, dfd)]
+            ds = [mean_of(eps, x, "driving_score") for x in (clean, att, dfd)]
+            iou = [mean_of(eps, x, "iou_vehicle") for x in (clean, att, dfd)]
             vs: dict[str, Interval | None] = {}
             for k in MEASURES:
                 vs[f"{k}|att-clean"] = compare(eps, att, clean, k, f"attack|{scope}|{i}", boot).diff if i else None
@@ -178,7 +173,7 @@ def plot(path: Path, eps: Episodes, levels: list[Any], title: str) -> None:
     xs = np.arange(len(levels))
     for ax, k in zip(axes, ("iou_vehicle", "collision"), strict=True):
         def value(m: str, measure: str = k) -> float:
-            v = _mean(eps, m, measure)
+            v = mean_of(eps, m, measure)
             return np.nan if v is None else (v * n if measure == "collision" else v)
 
         for j, m in enumerate(methods):

@@ -94,6 +94,12 @@ def values_of(eps: dict[Episode, dict[str, dict[str, float | None]]], method: st
     return {e: v for e, runs in eps.items() if (v := (runs.get(method) or {}).get(measure)) is not None}
 
 
+def mean_of(eps: dict[Episode, dict[str, dict[str, float | None]]], method: str, measure: str) -> float | None:
+    """The method's mean of the measure over the episodes it has it for (None: none)."""
+    vals = list(values_of(eps, method, measure).values())
+    return float(np.mean(vals)) if vals else None
+
+
 def needed_episodes(diffs: Sequence[float], level: float = 0.95, power: float = 0.8) -> int | None:
     """Episodes a two-sided paired test at 1 - level would need for `power` against the measured mean difference,
     with the measured spread: n = ((z_a + z_b) sd / |mean|)^2; None when the mean difference is 0."""

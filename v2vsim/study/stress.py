@@ -29,10 +29,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from v2vsim.study.catalogue import Stress
-from v2vsim.study.leaderboard import ALL, BASELINE, ORACLE, Episode, Versus, compare, episodes_of, pooled, values_of
+from v2vsim.study.leaderboard import ALL, BASELINE, ORACLE, Episode, Versus, compare, episodes_of, mean_of, pooled
 from v2vsim.study.stats import DEFAULT_B, Interval
 from v2vsim.study.summary import cell
 
@@ -155,7 +153,7 @@ def curves(s: Stress, levels: Sequence[dict[str, Episodes]], boot: int = DEFAULT
         for m in methods:
             diffs = {k: tuple(compare(eps, m, BASELINE, k, f"{s.name}|{i}|{tag}", boot)
                               for i, eps in enumerate(per_level)) for k in CURVE_MEASURES}
-            means = {k: tuple(_mean(eps, m, k) for eps in per_level) for k in CURVE_MEASURES}
+            means = {k: tuple(mean_of(eps, m, k) for eps in per_level) for k in CURVE_MEASURES}
             out.append(Curve(m, s.name, scope, diffs, means))
     return out
 
@@ -163,11 +161,6 @@ def curves(s: Stress, levels: Sequence[dict[str, Episodes]], boot: int = DEFAULT
 def in_scope(level: dict[str, Episodes], scope: str) -> Episodes:
     """One level's episodes of a family, or of every family pooled (scope "overall")."""
     return pooled(level) if scope == ALL else level.get(scope, {})
-
-
-def _mean(eps: Episodes, method: str, measure: str) -> float | None:
-    vals = list(values_of(eps, method, measure).values())
-    return float(np.mean(vals)) if vals else None
 
 
 def breaking_md(stresses: Sequence[Stress], by_stress: dict[str, list[Curve]], meta: dict[str, Any]) -> str:
@@ -283,6 +276,6 @@ def write_stress(out: Path, stresses: Sequence[Stress], levels: dict[str, list[d
     paths[2].write_text(json.dumps(to_json(stresses, by_stress, meta), indent=1))
     for s in stresses:
         if s.name in by_stress:
-            nm = {k: _mean(in_scope(levels[s.name][0], ALL), BASELINE, k) for k in CURVE_MEASURES}
+            nm = {k: mean_of(in_scope(levels[s.name][0], ALL), BASELINE, k) for k in CURVE_MEASURES}
             paths.append(plot(out, s, by_stress[s.name], nm))
     return paths

@@ -230,18 +230,16 @@ def sweep_md(meta: dict, axes: Sequence[Axis], rows: Sequence[Row], stats: Seque
     lines.append(f"Runs: {runs['complete']} complete ({runs['reused']} reused), "
                  + (f"{len(degraded)} degraded, " if degraded else "")
                  + f"{len(failed)} failed" + (", **interrupted**" if meta.get("interrupted") else "") + ".")
-    lost = [d for d in degraded if not as_configured(d["status"])]
-    flagged = [d for d in degraded if as_configured(d["status"])]
-    if lost:
-        counted = "**counted** in the tables and plots below (--include-degraded)" if runs.get(
-            "include_degraded") else "left out of the tables and plots below (--include-degraded counts them)"
-        lines.append(f"**Degraded runs** (every frame, but agents lost or a method with no score: not the configured "
-                     f"run) are in sweep.csv with their `status`, and {counted}:")
-        lines += ["", *(f"- {d['point'] or 'no grid'} seed {d['seed']}: {d['status']}" for d in lost), ""]
-    if flagged:
-        lines.append("**Runs with a sender flagged** by the misbehaviour check (`defence`): each went as configured "
-                     "and is counted in the tables and plots below; the flag is the check's finding:")
-        lines += ["", *(f"- {d['point'] or 'no grid'} seed {d['seed']}: {d['status']}" for d in flagged), ""]
+    counted = "**counted** in the tables and plots below (--include-degraded)" if runs.get(
+        "include_degraded") else "left out of the tables and plots below (--include-degraded counts them)"
+    for flagged_only, head in (
+            (False, "**Degraded runs** (every frame, but agents lost or a method with no score: not the configured "
+                    f"run) are in sweep.csv with their `status`, and {counted}:"),
+            (True, "**Runs with a sender flagged** by the misbehaviour check (`defence`): each went as configured "
+                   "and is counted in the tables and plots below; the flag is the check's finding:")):
+        group = [d for d in degraded if as_configured(d["status"]) == flagged_only]
+        if group:
+            lines += [head, "", *(f"- {d['point'] or 'no grid'} seed {d['seed']}: {d['status']}" for d in group), ""]
     if runs.get("replayed"):
         lines.append(f"{runs['simulated']} runs simulated, {runs['replayed']} replayed with `v2vsim evaluate` "
                      "from the recording of the same seed at a point that differs only in receiver-side keys "
