@@ -219,11 +219,11 @@ def load_catalogue(path: Path | None = None) -> Catalogue:
 
 def _stresses(r: _Reader, raw: Any) -> dict[str, Stress]:
     """The `stress` section: name -> {key, levels, x (default: the levels, when numbers), unit, compensation,
-    set (overrides of every stressed run)}."""
+    set (overrides of every stressed run), harsher (up | down: which way along x the levels grow harsher)}."""
     out: dict[str, Stress] = {}
     for name, st in r.mapping(raw, "stress", set(raw or {}), set()).items():
         where = f"stress.{name}"
-        st = r.mapping(st, where, {"key", "levels", "x", "unit", "compensation", "set"},
+        st = r.mapping(st, where, {"key", "levels", "x", "unit", "compensation", "set", "harsher"},
                         {"key", "levels", "unit"})
         levels = st["levels"]
         if not isinstance(levels, list) or len(levels) < 2:
@@ -235,8 +235,15 @@ def _stresses(r: _Reader, raw: Any) -> dict[str, Stress]:
                 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in x)):
             raise r.fail(f"{where}.x", f"expected {len(levels)} numbers (each level's position; needed when the "
                                        "levels are not numbers)")
-        if any(b <= a for a, b in zip(x, x[1:], strict=False)):
-            raise r.fail(f"{where}.x", "expected increasing numbers, mildest level first")
+        # harsher: which way along x the levels grow harsher (up: latency, loss; down: penetration, where fewer
+        # connected vehicles is the harsher level); the levels are listed mildest first either way
+        harsher = st.get("harsher", "up")
+        if harsher not in ("up", "down"):
+            raise r.fail(f"{where}.harsher", f"expected 'up' or 'down', got {harsher!r}")
+        sign = 1 if harsher == "up" else -1
+        if any(sign * (b - a) <= 0 for a, b in zip(x, x[1:], strict=False)):
+            raise r.fail(f"{where}.x", f"expected {'in' if sign > 0 else 'de'}creasing numbers, mildest level first"
+                                       f" (harsher: {harsher})")
         comp = st.get("compensation", False)
         if not isinstance(comp, bool):
             raise r.fail(f"{where}.compensation", f"expected true or false, got {comp!r}")

@@ -45,6 +45,10 @@ STRESS = {"latency": {"key": "comm.latency_ms.mean", "levels": [0, 200, 400], "u
      "stress.pose.x: expected 2 numbers"),
     ({"latency": {"key": "comm.latency_ms.mean", "levels": [200, 0], "unit": "ms"}}, "stress.latency.x: expected "
      "increasing numbers"),
+    ({"latency": {"key": "cavs.penetration", "levels": [0, 1], "unit": "share", "harsher": "down"}},
+     "stress.latency.x: expected decreasing numbers, mildest level first"),
+    ({"latency": {"key": "cavs.penetration", "levels": [1, 0], "unit": "share", "harsher": "sideways"}},
+     "stress.latency.harsher: expected 'up' or 'down'"),
     ({"latency": {"key": "comm.latency_ms.mean", "levels": [0, 1], "unit": "ms", "set": ["nope"]}},
      "stress.latency.set: expected a list of KEY.PATH=VALUE"),
     ({"latency": {"key": "comm.latency_ms.mean", "levels": [0, 1], "unit": "ms", "speed": 1}},
