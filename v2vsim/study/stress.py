@@ -227,15 +227,16 @@ def to_json(stresses: Sequence[Stress], by_stress: dict[str, list[Curve]], meta:
     return out
 
 
-def plot(out: Path, s: Stress, cs: Sequence[Curve], none_means: dict[str, float | None]) -> Path:
-    """stress_<name>.png: overall driving score, success rate and vehicle IoU against the level, one line per method
-    with its interval (that of method - none, placed on the method's mean), none's mean dashed."""
+def plot(out: Path, s: Stress, cs: Sequence[Curve], none_means: dict[str, float | None], scope: str = ALL) -> Path:
+    """stress_<name>.png (overall; stress_<name>_<family>.png for one family): driving score, success rate and
+    vehicle IoU against the level, one line per method with its interval (that of method - none, placed on the
+    method's mean), none's mean dashed."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    overall = [c for c in cs if c.scope == ALL]
+    overall = [c for c in cs if c.scope == scope]
     fig, axes = plt.subplots(1, 3, figsize=(14, 3.8))
     for ax, k in zip(axes, ("driving_score", "success", "iou_vehicle"), strict=True):
         base = none_means.get(k)
@@ -258,9 +259,9 @@ def plot(out: Path, s: Stress, cs: Sequence[Curve], none_means: dict[str, float 
         ax.set_xlabel(textwrap.fill(f"{s.name} ({s.unit})", 48), fontsize=8)
         ax.set_ylabel(textwrap.fill(f"{CURVE_MEASURES[k]} (95 % CI of the difference from none)", 36), fontsize=8)
     axes[0].legend(fontsize=7)
-    fig.suptitle(f"where cooperation stops helping: {s.name}")
+    fig.suptitle(f"where cooperation stops helping: {s.name}" + ("" if scope == ALL else f", {scope}"))
     fig.tight_layout()
-    path = out / f"stress_{s.name}.png"
+    path = out / (f"stress_{s.name}.png" if scope == ALL else f"stress_{s.name}_{scope}.png")
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
@@ -275,7 +276,11 @@ def write_stress(out: Path, stresses: Sequence[Stress], levels: dict[str, list[d
     write_csv(paths[1], stresses, by_stress)
     paths[2].write_text(json.dumps(to_json(stresses, by_stress, meta), indent=1))
     for s in stresses:
-        if s.name in by_stress:
-            nm = {k: mean_of(in_scope(levels[s.name][0], ALL), BASELINE, k) for k in CURVE_MEASURES}
-            paths.append(plot(out, s, by_stress[s.name], nm))
+        if s.name not in by_stress:
+            continue
+        families = list(levels[s.name][0]) if levels[s.name] else []
+        # overall, and with several families each one's own (pooled curves hide where a family differs)
+        for scope in [ALL, *families] if len(families) > 1 else [ALL]:
+            nm = {k: mean_of(in_scope(levels[s.name][0], scope), BASELINE, k) for k in CURVE_MEASURES}
+            paths.append(plot(out, s, by_stress[s.name], nm, scope))
     return paths

@@ -197,3 +197,30 @@ def test_with_one_family_overall_is_that_family_to_the_last_digit() -> None:
     by = {c.scope: c for c in cs if c.method == "late"}
     assert set(by) == {"pullout", "overall"}
     assert by["overall"].diffs == by["pullout"].diffs and by["overall"].means == by["pullout"].means
+
+
+def test_a_stress_harsher_as_x_falls_breaks_where_the_gain_stops_and_plots_each_family(tmp_path: Path) -> None:
+    """Penetration (harsher: down): levels 1, 0.5, 0 mildest first; late fusion gains at 1 and 0.5 in both families
+    and not at 0, so it breaks at 0; with two families each gets its own plot beside the overall one."""
+    from v2vsim.study.catalogue import Axis, Stress
+    from v2vsim.study.leaderboard import Episode
+    from v2vsim.study.stress import write_stress
+
+    s = Stress("penetration", Axis("cavs.penetration", ("1", "0.5", "0"), (1, 0.5, 0)), (1.0, 0.5, 0.0), "share",
+               False, ())
+
+    def level(gain: float) -> dict:
+        return {f: {Episode(f, f"c{c}", seed): {"none": {"driving_score": 0.5, "iou_vehicle": 0.2},
+                                                "late": {"driving_score": 0.5 + gain + 0.01 * (c - 1),
+                                                         "iou_vehicle": 0.2 + gain}}
+                    for c in range(3) for seed in range(2)} for f in ("a", "b")}
+
+    levels = {"penetration": [level(0.3), level(0.2), level(0.0)]}
+    meta = {"catalogue": "c.yaml", "profile": "stress", "split": "heldout", "seeds": "0-1", "families": ["a", "b"],
+            "methods": ["none", "late"], "overrides": [], "stresses": ["penetration"]}
+    paths = write_stress(tmp_path, [s], levels, meta, boot=200)
+    assert {p.name for p in paths if p.suffix == ".png"} == {"stress_penetration.png", "stress_penetration_a.png",
+                                                              "stress_penetration_b.png"}
+    doc = json.loads((tmp_path / "breaking_points.json").read_text())
+    got = {(c["scope"], c["method"]): c["breaking"]["driving_score"]["x"] for c in doc["stresses"][0]["curves"]}
+    assert got == {("a", "late"): 0.0, ("b", "late"): 0.0, ("overall", "late"): 0.0}
