@@ -185,9 +185,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="an override for every run of every family (repeatable)")
     p.add_argument("--bootstrap", type=int, default=1000, metavar="B", help="bootstrap resamples (default 1000)")
     p.add_argument("--stress", default=None, metavar="NAMES",
-                   help="comma-separated degradation axes of the catalogue (latency, loss, burst_loss, pose): each "
+                   help="comma-separated degradation axes of the catalogue (latency, loss, burst_loss, pose, "
+                   "penetration, attack, attack_defended): each "
                    "cooperative method x the axis's levels against none, and each method's breaking point "
                    "(breaking_points.md) instead of the leaderboard")
+    p.add_argument("--driven", choices=["ego", "sees", "all"], default="ego",
+                   help="who drives on what it perceives and receives: the ego alone (default), the ego and each "
+                   "family's CAVs that see its hidden actor, or every CAV; the scores are then the fleet's")
     p.add_argument("--out", required=True, help="benchmark directory (resumable: complete runs there are reused)")
     p.set_defaults(func=verbs.cmd_benchmark)
 

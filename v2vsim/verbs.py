@@ -244,7 +244,7 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
                                    families=names(args.families), methods=names(args.methods), seeds=args.seeds,
                                    jobs=args.jobs, engine=args.engine, scheduler=args.scheduler,
                                    overrides=tuple(args.overrides), bootstrap=args.bootstrap,
-                                   stresses=names(args.stress)))
+                                   stresses=names(args.stress), driven=args.driven))
 
 
 def cmd_bandwidth(args: argparse.Namespace) -> int:

@@ -34,6 +34,22 @@ from v2vsim.study.stress import COMP, REFERENCE, compensable, reference_of, stud
 from v2vsim.study.sweep import EXIT_INTERRUPTED, SweepArgs, prepare, sweep
 
 DRIVING_ONLY = "control.perceive=driving"
+DRIVEN = ("ego", "sees", "all")  # --driven (BenchmarkArgs.driven)
+EGO = "cav0"  # the driven vehicle of every family (the catalogue's header)
+
+
+def driven_override(f: Family, driven: str) -> tuple[str, ...]:
+    """The override that makes `driven` drive in family `f` (none for the ego alone: the scenarios' default). With
+    several driven vehicles each fuses and drives on what it perceives and receives, and the run's metrics.json
+    measures the fleet (v2vsim.control.fleet): its score is their mean, a success only when every one succeeded."""
+    if driven == "ego":
+        return ()
+    if driven == "all":
+        return ("cavs.ego=all",)
+    if not f.sees:
+        raise ConfigError(f"--driven sees: family {f.name} names no CAV that sees its hidden actor (`sees` in the "
+                          "catalogue)")
+    return (f"cavs.ego=[{','.join([EGO, *f.sees])}]",)
 
 
 @dataclass(frozen=True)
@@ -51,6 +67,7 @@ class BenchmarkArgs:
     overrides: tuple[str, ...] = ()
     bootstrap: int = DEFAULT_B
     stresses: tuple[str, ...] = ()  # degradation axes of the catalogue's `stress` section (v2vsim.study.stress)
+    driven: str = "ego"  # who drives: the ego alone, the ego and the family's CAVs that see the hidden actor, all
 
 
 def family_sweeps(args: BenchmarkArgs, cat: Catalogue) -> list[tuple[str, SweepArgs]]:
@@ -58,6 +75,8 @@ def family_sweeps(args: BenchmarkArgs, cat: Catalogue) -> list[tuple[str, SweepA
     sweeps (v2vsim.study.stress's layout). ConfigError for a bad option."""
     if args.profile not in cat.profiles:
         raise ConfigError(f"--profile {args.profile}: allowed: {', '.join(cat.profiles)}")
+    if args.driven not in DRIVEN:
+        raise ConfigError(f"--driven {args.driven}: allowed: {', '.join(DRIVEN)}")
     if args.split not in SPLITS:
         raise ConfigError(f"--split {args.split}: allowed: {', '.join(SPLITS)}")
     prof = cat.profiles[args.profile]
@@ -85,7 +104,8 @@ def family_sweeps(args: BenchmarkArgs, cat: Catalogue) -> list[tuple[str, SweepA
         grid = (f"control.method={','.join(ms)}", *(f"{a.key}={','.join(a.texts)}" for a in f.axes(prof.levels)),
                 *extra)
         return SweepArgs(scenario=f.scenario, grid=grid, seeds=text, out=out, jobs=args.jobs,
-                         overrides=(DRIVING_ONLY, *args.overrides, *sets), bootstrap=args.bootstrap,
+                         overrides=(DRIVING_ONLY, *driven_override(f, args.driven), *args.overrides, *sets),
+                         bootstrap=args.bootstrap,
                          engine=args.engine, scheduler=args.scheduler, replay=False)
 
     out = []
@@ -137,7 +157,8 @@ def benchmark(args: BenchmarkArgs, start: Callable[[RunSpec], Job] | None = None
     prof = cat.profiles[args.profile]
     meta = {"catalogue": str(cat.source), "profile": args.profile, "split": args.split,
             "seeds": plan[0][1].seeds, "families": list(dict.fromkeys(n.split("/")[0] for n, _ in plan)),
-            "methods": list(args.methods or prof.methods), "overrides": list(args.overrides)}
+            "methods": list(args.methods or prof.methods), "overrides": list(args.overrides),
+            **({"driven": args.driven} if args.driven != "ego" else {})}
     docs = {name: json.loads((s.out / "sweep.json").read_text()) for name, s in plan}
     if args.stresses:
         stresses = [cat.stress(n) for n in args.stresses]

@@ -31,6 +31,7 @@ class Family:
     pre_crash: str  # the NHTSA pre-crash typology's name for the conflict
     occlusion: str  # who cannot see whom, and what hides it
     grid: tuple[Axis, ...]  # the critical actor's factors, timing first
+    sees: tuple[str, ...] = ()  # the CAVs that see the hidden actor (`--driven sees` drives them beside the ego)
 
     def axes(self, levels: Sequence[int]) -> tuple[Axis, ...]:
         """The grid with `levels[i]` evenly spaced values kept on axis i (1: the middle one; absent: 1; at least the
@@ -196,7 +197,11 @@ def load_catalogue(path: Path | None = None) -> Catalogue:
     families = []
     for i, f in enumerate(top["families"]):
         where = f"families[{i}]"
-        f = r.mapping(f, where, {"name", "scenario", "pre_crash", "occlusion", "grid"}, {"name", "scenario", "grid"})
+        f = r.mapping(f, where, {"name", "scenario", "pre_crash", "occlusion", "grid", "sees"},
+                      {"name", "scenario", "grid"})
+        sees = f.get("sees", [])
+        if not isinstance(sees, list) or not all(isinstance(c, str) and c for c in sees):
+            raise r.fail(f"{where}.sees", "expected a list of CAV ids (those that see the hidden actor)")
         name = r.text(f["name"], f"{where}.name")
         scenario = (source.parent / r.text(f["scenario"], f"{where}.scenario")).resolve()
         if not scenario.is_file():
@@ -210,7 +215,7 @@ def load_catalogue(path: Path | None = None) -> Catalogue:
                 raise r.fail(f"{where}.grid.{key}", "expected a non-empty list of values")
             axes.append(r.axis(key, values, f"{where}.grid.{key}"))
         families.append(Family(name, scenario, str(f.get("pre_crash", "")), str(f.get("occlusion", "")),
-                               tuple(axes)))
+                               tuple(axes), tuple(sees)))
     names = [f.name for f in families]
     if len(set(names)) != len(names):
         raise r.fail("families", "two families share a name")

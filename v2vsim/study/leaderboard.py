@@ -174,13 +174,21 @@ def config_table(eps: dict[Episode, dict[str, dict[str, float | None]]], methods
     return lines
 
 
+# --driven (v2vsim.study.benchmark): what a run's scores measure when more than the ego drives
+DRIVEN_TEXT = {"sees": "the ego and each family's CAVs that see the hidden actor; every score is the fleet's (the mean "
+                       "over the driven vehicles; a success only when every one succeeded)",
+               "all": "every CAV; every score is the fleet's (the mean over the driven vehicles; a success only when "
+                      "every one succeeded)"}
+
+
 def leaderboard_md(bs: Sequence[Board], meta: dict[str, Any],
                    per_family: dict[str, dict[Episode, dict[str, dict[str, float | None]]]] | None = None) -> str:
     lines = ["# v2vsim closed-loop benchmark: leaderboard", "",
              f"Catalogue `{meta['catalogue']}`, profile `{meta['profile']}`, {meta['split']} seeds "
              f"{meta['seeds']}; methods ranked by mean driving score (overall). An episode is one (family, "
              "configuration, seed); every method drove the same episodes. Intervals: 95 % paired bootstrap over "
-             "episodes (expanded percentile); * marks a difference whose interval excludes 0.", ""]
+             "episodes (expanded percentile); * marks a difference whose interval excludes 0."
+             + (f" Driven: {DRIVEN_TEXT[meta['driven']]}." if meta.get("driven") else ""), ""]
     for b in sorted(bs, key=lambda b: b.scope == ALL, reverse=True):
         order = sorted(b.alone, key=lambda m: -(b.alone[m]["driving_score"].mean
                                                  if b.alone[m]["driving_score"] else -1.0))

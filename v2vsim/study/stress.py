@@ -30,7 +30,18 @@ from pathlib import Path
 from typing import Any
 
 from v2vsim.study.catalogue import Stress
-from v2vsim.study.leaderboard import ALL, BASELINE, ORACLE, Episode, Versus, compare, episodes_of, mean_of, pooled
+from v2vsim.study.leaderboard import (
+    ALL,
+    BASELINE,
+    DRIVEN_TEXT,
+    ORACLE,
+    Episode,
+    Versus,
+    compare,
+    episodes_of,
+    mean_of,
+    pooled,
+)
 from v2vsim.study.stats import DEFAULT_B, Interval
 from v2vsim.study.summary import cell
 
@@ -169,7 +180,8 @@ def breaking_md(stresses: Sequence[Stress], by_stress: dict[str, list[Curve]], m
              "A breaking point is the mildest level at which the method's paired 95 % interval against `none` (same "
              "episodes) no longer lies above 0; `> x (never)`: it held at every level run; `(no gain at the "
              "mildest)`: the data never showed a gain. Driving: the driving score; perception: vehicle IoU and "
-             "AP@0.5 of the map it drove on, from the same runs.", ""]
+             "AP@0.5 of the map it drove on, from the same runs."
+             + (f" Driven: {DRIVEN_TEXT[meta['driven']]}." if meta.get("driven") else ""), ""]
     for s in stresses:
         cs = by_stress.get(s.name, [])
         lines += [f"## {s.name}: {s.level.key} ({s.unit}), levels {', '.join(_num(x) for x in s.x)}", "",

@@ -69,6 +69,8 @@ def test_the_shipped_catalogue_loads_and_a_profile_thins_each_grid_axis_evenly()
      "families[0].grid.seed: --grid seed=1,2: seed cannot be swept here"),
     ({"families": [{"name": "a", "scenario": str(TJ), "grid": {"comm.range_m": 5}}]},
      "families[0].grid.comm.range_m: expected a non-empty list"),
+    ({"families": [{"name": "a", "scenario": str(TJ), "grid": {"comm.range_m": [5]}, "sees": "cav1"}]},
+     "families[0].sees: expected a list of CAV ids"),
 ])
 def test_a_malformed_catalogue_is_one_line_naming_the_file_and_key(tmp_path: Path, change: dict, expect: str) -> None:
     path = _catalogue(tmp_path, **change)
@@ -233,6 +235,8 @@ def test_benchmark_options_are_checked_before_anything_is_written(tmp_path: Path
     assert "no family 'nope'" in capsys.readouterr().err
     assert main(["benchmark", "--seeds", "999", "--out", str(out)]) == 2
     assert "--seeds 999: the catalogue's heldout split has" in capsys.readouterr().err
+    assert main(["benchmark", "--driven", "sees", "--catalogue", str(_catalogue(tmp_path)), "--out", str(out)]) == 2
+    assert "--driven sees: family pullout names no CAV that sees its hidden actor" in capsys.readouterr().err
     assert not out.exists()
 
 
@@ -267,3 +271,23 @@ def test_the_benchmark_runs_on_a_local_dask_cluster(tmp_path: Path) -> None:
     overall = next(b for b in doc["boards"] if b["scope"] == "overall")
     assert overall["episodes"] == 1 and set(overall["methods"]) == {"oracle", "none"}
     assert (out / "leaderboard.md").read_text().startswith("# v2vsim closed-loop benchmark")
+
+
+def test_driven_sees_drives_each_familys_seeing_cavs_beside_the_ego_and_they_are_placed_cavs() -> None:
+    """`--driven sees` (issue 54): every shipped family names the CAVs that see its hidden actor; each is a placed,
+    non-ego CAV of its scenario, and the variant's override makes the ego and them the scenario's egos."""
+    from dataclasses import replace
+
+    cat = load_catalogue()
+    args = BenchmarkArgs(out=Path("b"), profile="quick", families=tuple(f.name for f in cat.families))
+    plain = dict(family_sweeps(args, cat))
+    seeing = dict(family_sweeps(replace(args, driven="sees"), cat))
+    every = dict(family_sweeps(replace(args, driven="all"), cat))
+    for f in cat.families:
+        assert f.sees, f.name
+        sc = load_scenario(f.scenario, list(seeing[f.name].overrides))
+        placed = [f"cav{i}" for i in range(sc.cavs.count)]
+        assert set(f.sees) <= set(placed) - {"cav0"}, f.name
+        assert sc.cavs.egos_among(placed) == ["cav0", *f.sees]
+        assert load_scenario(f.scenario, list(plain[f.name].overrides)).cavs.egos_among(placed) == ["cav0"]
+        assert load_scenario(f.scenario, list(every[f.name].overrides)).cavs.egos_among(placed) == placed
