@@ -86,6 +86,15 @@ def breaking_index(diffs: Sequence[Interval | None]) -> int | None:
     return None
 
 
+def harm_index(diffs: Sequence[Interval | None]) -> int | None:
+    """The first level whose interval (method - none, levels mildest first) lies wholly below 0: from there on the
+    data show cooperation doing harm; None when no level's does."""
+    for i, iv in enumerate(diffs):
+        if iv is not None and iv.hi is not None and iv.hi < 0:
+            return i
+    return None
+
+
 def reference_of(s: Stress) -> str:
     """The folder of the oracle and none runs a stress is compared with (module doc)."""
     return f"{REFERENCE}-{s.name}" if s.sets else REFERENCE
@@ -143,6 +152,10 @@ class Curve:
     diffs: dict[str, tuple[Versus, ...]]  # measure -> per level
     means: dict[str, tuple[float | None, ...]]  # measure -> per level, the method's own mean
 
+    def harm(self, measure: str = "driving_score") -> int | None:
+        """The level index from which the method does worse than `none` (harm_index), or None."""
+        return harm_index([v.diff for v in self.diffs[measure]])
+
     def breaking(self, measure: str) -> BreakingPoint:
         vs = self.diffs[measure]
         i = breaking_index([v.diff for v in vs])
@@ -179,17 +192,20 @@ def breaking_md(stresses: Sequence[Stress], by_stress: dict[str, list[Curve]], m
              f"Catalogue `{meta['catalogue']}`, profile `{meta['profile']}`, {meta['split']} seeds {meta['seeds']}. "
              "A breaking point is the mildest level at which the method's paired 95 % interval against `none` (same "
              "episodes) no longer lies above 0; `> x (never)`: it held at every level run; `(no gain at the "
-             "mildest)`: the data never showed a gain. Driving: the driving score; perception: vehicle IoU and "
-             "AP@0.5 of the map it drove on, from the same runs."
+             "mildest)`: the data never showed a gain; `worse than none from`: the mildest level whose interval "
+             "lies wholly below 0. Driving: the driving score; perception: vehicle IoU and AP@0.5 of the map it "
+             "drove on, from the same runs."
              + (f" Driven: {DRIVEN_TEXT[meta['driven']]}." if meta.get("driven") else ""), ""]
     for s in stresses:
         cs = by_stress.get(s.name, [])
         lines += [f"## {s.name}: {s.level.key} ({s.unit}), levels {', '.join(_num(x) for x in s.x)}", "",
-                  "| scope | method | driving breaks at | its score - none there | IoU breaks at | AP@0.5 breaks at |",
-                  "|---|---|---|---|---|---|"]
+                  "| scope | method | driving breaks at | its score - none there | driving worse than none from | "
+                  "IoU breaks at | AP@0.5 breaks at |", "|---|---|---|---|---|---|---|"]
         for c in sorted(cs, key=lambda c: (c.scope == ALL, c.scope, c.method), reverse=False):
             d, iou, ap = (c.breaking(k) for k in BREAKING)
-            lines.append(f"| {c.scope} | {c.method} | {d.text(s)} | {cell(d.diff, True)} | {iou.text(s)} | "
+            h = c.harm()
+            harm = "-" if h is None else f"{_num(s.x[h])}: {cell(c.diffs['driving_score'][h].diff, True)}"
+            lines.append(f"| {c.scope} | {c.method} | {d.text(s)} | {cell(d.diff, True)} | {harm} | {iou.text(s)} | "
                          f"{ap.text(s)} |")
         lines += ["", f"Overall, driving score - none per level ({', '.join(_num(x) for x in s.x)} {s.unit}):", "",
                   "| method | " + " | ".join(_num(x) for x in s.x) + " |", "|---|" + "---|" * len(s.x)]
@@ -231,6 +247,7 @@ def to_json(stresses: Sequence[Stress], by_stress: dict[str, list[Curve]], meta:
                 "breaking": {k: {"index": (bp := c.breaking(k)).index,
                                  "x": None if bp.index is None else s.x[bp.index],
                                  "diff": bp.diff.to_json() if bp.diff else None} for k in BREAKING},
+                "worse_than_none_from": None if (h := c.harm()) is None else {"index": h, "x": s.x[h]},
                 "levels": [{"x": s.x[i], **{k: {"mean": c.means[k][i], "n": c.diffs[k][i].n,
                                                 "minus_none": c.diffs[k][i].diff.to_json() if c.diffs[k][i].diff
                                                 else None} for k in CURVE_MEASURES}}

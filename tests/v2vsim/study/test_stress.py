@@ -15,7 +15,7 @@ from v2vsim.study.benchmark import DRIVING_ONLY, BenchmarkArgs, benchmark, famil
 from v2vsim.study.catalogue import load_catalogue
 from v2vsim.study.plan import RunSpec
 from v2vsim.study.stats import Interval
-from v2vsim.study.stress import breaking_index
+from v2vsim.study.stress import breaking_index, harm_index
 
 from .test_benchmark import FakeJob, _catalogue
 
@@ -31,6 +31,13 @@ def test_the_breaking_point_is_the_first_level_whose_interval_no_longer_lies_abo
     assert breaking_index([_iv(0.2, 0.5), _iv(0.1, 0.3)]) is None  # held at every level
     assert breaking_index([_iv(None, None), _iv(0.1, 0.3)]) == 0  # one episode: nothing shown
     assert breaking_index([]) is None
+
+
+def test_harm_is_the_first_level_whose_interval_lies_wholly_below_0() -> None:
+    assert harm_index([_iv(0.2, 0.5), _iv(-0.3, 0.1), _iv(-0.5, -0.2, -0.4), _iv(0.1, 0.4)]) == 2
+    assert harm_index([_iv(0.2, 0.5), _iv(-0.3, 0.0, -0.1)]) is None  # touching 0 is no shown harm
+    assert harm_index([None, _iv(None, None, -1.0), _iv(-0.4, -0.1, -0.2)]) == 2  # one episode shows nothing
+    assert harm_index([_iv(0.1, 0.3)]) is None
 
 
 STRESS = {"latency": {"key": "comm.latency_ms.mean", "levels": [0, 200, 400], "unit": "ms", "compensation": True,
