@@ -66,8 +66,8 @@ class BreakingPoint:
     def text(self, s: Stress) -> str:
         if self.diff is not None and self.diff.lo is None:
             return "- (no interval: one episode)"
-        if self.index is None:
-            return f"> {_num(s.x[-1])} (never)"
+        if self.index is None:  # it held even at the harshest level, the last (x falls along a harsher-down axis)
+            return f"{'<' if s.x[-1] < s.x[0] else '>'} {_num(s.x[-1])} (never)"
         return f"{_num(s.x[self.index])}" + (" (no gain at the mildest)" if self.index == 0 else "")
 
 

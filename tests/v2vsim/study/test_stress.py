@@ -231,3 +231,8 @@ def test_a_stress_harsher_as_x_falls_breaks_where_the_gain_stops_and_plots_each_
     doc = json.loads((tmp_path / "breaking_points.json").read_text())
     got = {(c["scope"], c["method"]): c["breaking"]["driving_score"]["x"] for c in doc["stresses"][0]["curves"]}
     assert got == {("a", "late"): 0.0, ("b", "late"): 0.0, ("overall", "late"): 0.0}
+    iou = {(c["scope"], c["method"]): c["breaking"]["iou_vehicle"]["x"] for c in doc["stresses"][0]["curves"]}
+    assert iou[("overall", "late")] == 0.0  # the IoU gain (0 at the last level) stops there too
+    from v2vsim.study.stress import BreakingPoint
+
+    assert BreakingPoint("late", "penetration", "a", "iou_vehicle", None, None).text(s) == "< 0 (never)"
