@@ -265,11 +265,11 @@ def plot(out: Path, s: Stress, cs: Sequence[Curve], none_means: dict[str, float 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    overall = [c for c in cs if c.scope == scope]
+    shown = [c for c in cs if c.scope == scope]
     fig, axes = plt.subplots(1, 3, figsize=(14, 3.8))
     for ax, k in zip(axes, ("driving_score", "success", "iou_vehicle"), strict=True):
         base = none_means.get(k)
-        for c in overall:
+        for c in shown:
             xs, ys, lo, hi = [], [], [], []
             for x, v, mean in zip(s.x, c.diffs[k], c.means[k], strict=True):
                 if mean is None or v.diff is None:
