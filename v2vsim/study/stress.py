@@ -1,22 +1,26 @@
 """Where cooperation stops helping (`v2vsim benchmark --stress latency,...`, docs/benchmark.md "Stress"): the
 catalogue's families driven with the channel degraded step by step along one axis (latency, Bernoulli loss, burst
-loss, pose error), every cooperative method against `none`, and each method's breaking point.
+loss, pose error, the share of connected vehicles, a lying CAV), every cooperative method against `none`, and each
+method's breaking point.
 
     DIR/families/<family>/reference/       oracle and none, once per episode: neither reads a message, so no level
                                            of any stress can change their drive (measured: docs/benchmark.md);
                                            reference-<stress>/ for a stress with overrides of its own (`set`, e.g.
-                                           cavs.count for penetration), run with them
+                                           the age limit for latency), run with them
     DIR/families/<family>/<stress>/        every cooperative method x the stress's levels
     DIR/families/<family>/<stress>+comp/   the methods that have compensation (late fusion's model-free one, and
                                            those whose zoo ships an extrapolation module) x the levels, with
                                            comm.compensation on; reported as "<method>+comp"
     DIR/breaking_points.md|csv|json        per stress, method and scope (family, overall): the curves and the
                                            breaking points, driving and perception side by side
-    DIR/stress_<stress>.png                driving score (and vehicle IoU) against the level, one line per method
+    DIR/stress_<stress>.png                driving score, success and vehicle IoU against the level, one line per
+                                           method; with several families also stress_<stress>_<family>.png
 
 A method's breaking point on a stress, for a measure, is the mildest level at which its paired 95 % interval against
 `none` (the same episodes) no longer lies above 0: from there on the data no longer show that cooperation helps.
-`None` when it never does within the levels run; the first level when it never showed a gain at all.
+`None` when it never does within the levels run; the first level when it never showed a gain at all. Beside it,
+the first level whose driving interval lies wholly below 0 (`harm_index`: cooperation doing harm). Levels are
+listed mildest first; x rises along them, or falls for an axis that grows harsher downwards (penetration).
 """
 
 from __future__ import annotations
