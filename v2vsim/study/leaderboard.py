@@ -174,11 +174,13 @@ def config_table(eps: dict[Episode, dict[str, dict[str, float | None]]], methods
     return lines
 
 
-# --driven (v2vsim.study.benchmark): what a run's scores measure when more than the ego drives
-DRIVEN_TEXT = {"sees": "the ego and each family's CAVs that see the hidden actor; every score is the fleet's (the mean "
-                       "over the driven vehicles; a success only when every one succeeded)",
-               "all": "every CAV; every score is the fleet's (the mean over the driven vehicles; a success only when "
-                      "every one succeeded)"}
+def driven_note(meta: dict[str, Any]) -> str:
+    """A sentence for a study's header when more than the ego drove (--driven, v2vsim.study.benchmark): what its
+    scores then measure; "" for the ego alone."""
+    who = {"sees": "the ego and each family's CAVs that see the hidden actor", "all": "every CAV"}.get(
+        meta.get("driven", ""))
+    return (f" Driven: {who}; every score is the fleet's (the mean over the driven vehicles; a success only when "
+            "every one succeeded).") if who else ""
 
 
 def leaderboard_md(bs: Sequence[Board], meta: dict[str, Any],
@@ -188,7 +190,7 @@ def leaderboard_md(bs: Sequence[Board], meta: dict[str, Any],
              f"{meta['seeds']}; methods ranked by mean driving score (overall). An episode is one (family, "
              "configuration, seed); every method drove the same episodes. Intervals: 95 % paired bootstrap over "
              "episodes (expanded percentile); * marks a difference whose interval excludes 0."
-             + (f" Driven: {DRIVEN_TEXT[meta['driven']]}." if meta.get("driven") else ""), ""]
+             + driven_note(meta), ""]
     for b in sorted(bs, key=lambda b: b.scope == ALL, reverse=True):
         order = sorted(b.alone, key=lambda m: -(b.alone[m]["driving_score"].mean
                                                  if b.alone[m]["driving_score"] else -1.0))

@@ -37,11 +37,11 @@ from v2vsim.study.catalogue import Stress
 from v2vsim.study.leaderboard import (
     ALL,
     BASELINE,
-    DRIVEN_TEXT,
     ORACLE,
     Episode,
     Versus,
     compare,
+    driven_note,
     episodes_of,
     mean_of,
     pooled,
@@ -199,7 +199,7 @@ def breaking_md(stresses: Sequence[Stress], by_stress: dict[str, list[Curve]], m
              "mildest)`: the data never showed a gain; `worse than none from`: the mildest level whose interval "
              "lies wholly below 0. Driving: the driving score; perception: vehicle IoU and AP@0.5 of the map it "
              "drove on, from the same runs."
-             + (f" Driven: {DRIVEN_TEXT[meta['driven']]}." if meta.get("driven") else ""), ""]
+             + driven_note(meta), ""]
     for s in stresses:
         cs = by_stress.get(s.name, [])
         lines += [f"## {s.name}: {s.level.key} ({s.unit}), levels {', '.join(_num(x) for x in s.x)}", "",
