@@ -87,6 +87,14 @@ def build_parser() -> argparse.ArgumentParser:
                         ".yaml, camera and BEV PNGs) beside the v2vsim recording it is made from (docs/dataset.md)")
     p.set_defaults(func=verbs.cmd_dataset)
 
+    p = sub.add_parser("towns", help="generate towns: per seed a SUMO network, its buildings and a scenario YAML "
+                                     "(needs netconvert: pip install 'v2vsim[towns]')")
+    p.add_argument("--seeds", required=True, help="town seeds, A-B (inclusive) or A,B,C")
+    p.add_argument("--out", required=True, help="folder: one town_<seed>/ per town, contact_sheet.png")
+    p.add_argument("--no-sheet", action="store_true", help="skip the contact sheet of the first twelve towns")
+    p.add_argument("--no-check", action="store_true", help="skip starting each town's traffic once")
+    p.set_defaults(func=verbs.cmd_towns)
+
     p = sub.add_parser("train", help="train a model zoo (LiDAR, or camera with --encoder), stage by stage "
                                      "(docs/training.md)")
     p.add_argument("--data", required=True, help="dataset directory written by `v2vsim dataset`, or an OPV2V folder "

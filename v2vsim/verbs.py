@@ -143,6 +143,21 @@ def cmd_dataset(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_towns(args: argparse.Namespace) -> int:
+    from v2vsim.data.record import parse_seeds
+    from v2vsim.towns import generate_towns
+
+    try:
+        made = generate_towns(parse_seeds(args.seeds), Path(args.out), sheet=not args.no_sheet,
+                              check=not args.no_check)
+    except (ValueError, RuntimeError) as e:
+        print(f"v2vsim: error: {e}", file=sys.stderr)
+        return 2
+    sheet = "" if args.no_sheet else f" (contact sheet: {args.out}/contact_sheet.png)"
+    print(f"towns: {len(made)} in {args.out}{sheet}")
+    return 0
+
+
 def cmd_train(args: argparse.Namespace) -> int:
     from v2vsim.data.layout import DatasetError
     from v2vsim.training.stages import TrainArgs

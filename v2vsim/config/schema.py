@@ -82,7 +82,7 @@ class StandingVehicle:
     edge: str = _f("", "an edge id of traffic.net", lambda v: bool(v))
     lane: int = _f(0, ">= 0 (lane index on the edge, 0 = its rightmost)", _nonneg)
     to_end_m: float = _f(0.5, ">= 0 (m from its front bumper to the lane's end: 0.5 = at the stop line)", _nonneg)
-    type: Literal["car", "van", "truck"] = "truck"
+    type: Literal["car", "van", "truck", "bus"] = "truck"
 
 
 @dataclass(frozen=True)
@@ -94,7 +94,26 @@ class HiddenStopConfig:
 
     distance_m: float = _f(10.0, ">= 0 (m from the start of the ego's exit lane to its rear bumper)", _nonneg)
     until_s: float = _f(15.0, "> 0 (s after frame 0 at which it drives off)", _pos)
-    type: Literal["car", "van", "truck"] = "car"
+    type: Literal["car", "van", "truck", "bus"] = "car"
+
+
+@dataclass(frozen=True)
+class VehicleMix:
+    """The background traffic's classes (SUMO vTypes with their extents, v2vsim/traffic/sumo.py: car 4.5 x 1.9 x
+    1.5 m, van 5.4 x 2.0 x 2.4, truck 8.5 x 2.5 x 3.4, bus 12.0 x 2.55 x 3.2), as shares of the vehicles entering.
+    The default is the mix every shipped scenario was calibrated with; the generated towns vary it."""
+
+    car: float = _f(0.80, ">= 0 (share)", _nonneg)
+    van: float = _f(0.12, ">= 0 (share)", _nonneg)
+    truck: float = _f(0.08, ">= 0 (share)", _nonneg)
+    bus: float = _f(0.0, ">= 0 (share)", _nonneg)
+
+    def shares(self) -> tuple[tuple[str, float], ...]:
+        """(vType, share) of the classes with a share above 0, normalised to sum to 1 (the default's three as
+        written: 0.8 + 0.12 + 0.08 is exactly 1.0, so the shipped scenarios draw as they always did)."""
+        items = [(k, float(getattr(self, k))) for k in ("car", "van", "truck", "bus") if getattr(self, k) > 0]
+        total = sum(v for _, v in items)
+        return tuple((k, v / total) for k, v in items) if total != 1.0 else tuple(items)
 
 
 @dataclass(frozen=True)
@@ -108,6 +127,7 @@ class TrafficConfig:
                                                 lambda v: 0 < v[0] <= v[1])
     hidden_foe: HiddenFoeConfig | None = None  # null: no foe (SUMO backend only)
     standing: tuple[StandingVehicle, ...] = ()  # vehicles standing in a lane all run (SUMO backend only)
+    vehicle_mix: VehicleMix = field(default_factory=VehicleMix)  # the background's classes (SUMO backend only)
     hidden_stop: HiddenStopConfig | None = None  # null: none (SUMO backend only)
 
 

@@ -8,6 +8,7 @@ traffic, the sensor noise and hence every byte of a frame follow from (scenario,
 from __future__ import annotations
 
 import gzip
+import hashlib
 import json
 import multiprocessing
 import re
@@ -211,7 +212,19 @@ def _write_run_json(sc: Scenario, run_dir: Path, frames: int, cameras: bool) -> 
         "scenario": sc.name, "source": str(sc.source), "seed": sc.seed, "frames": frames,
         "cavs": [f"cav{i}" for i in range(sc.cavs.count)], "bev": {"size_m": sc.bev.size_m, "cells": sc.bev.cells},
         "range_m": sc.comm.range_m, "rate_hz": sc.rate_hz, "lidar_height_m": sc.sensors.lidar.height_m,
-        "modality": sc.perception.modality, "cameras": cameras, "overrides": list(sc.overrides)}, indent=1))
+        "modality": sc.perception.modality, "cameras": cameras, "overrides": list(sc.overrides),
+        "inputs": scenario_inputs(sc)}, indent=1))
+
+
+def scenario_inputs(sc: Scenario) -> dict[str, str]:
+    """{"net": sha256, "buildings": sha256} of the files the run's world was built from (what the benchmark-network
+    exclusion compares, v2vsim/training/held_out.py); a file the scenario does not name is left out."""
+    out = {}
+    for key in ("net", "buildings"):
+        path = getattr(sc.traffic, key)
+        if path is not None:
+            out[key] = hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    return out
 
 
 def record_run(scenario_path: str, seed: int, frames: int, out: Path, overrides: tuple[str, ...] = (),

@@ -9,7 +9,8 @@ What the backend does, net-agnostically:
 1. Analyse the network (sumolib): v2vsim/traffic/sumo_network.py (the main junction, its arms,
    the routes through it and their movements).
 2. Background traffic: a Poisson stream of `background_per_hour` vehicles in total, arms drawn
-   uniformly and movements 2:1:1 (straight:left:right); a mix of cars, vans and trucks. The
+   uniformly and movements 2:1:1 (straight:left:right); a mix of cars, vans, trucks and buses
+   (`traffic.vehicle_mix`). The
    stream starts before t=0 so that the arms are already populated ("prefill") instead of
    empty when the warm-up begins. Drawn with numpy from the scenario seed; SUMO itself runs
    with `--seed`, so a seed fully determines a run.
@@ -40,7 +41,7 @@ from types import ModuleType
 import numpy as np
 import sumolib
 
-from v2vsim.config import Scenario
+from v2vsim.config import ConfigError, Scenario
 from v2vsim.traffic.base import BackendBase, cav_id
 from v2vsim.traffic.penetration import connected_cavs
 from v2vsim.traffic.static_map import load_sumo_map
@@ -59,11 +60,11 @@ _VTYPES: tuple[tuple[str, str, float, float, float, float, float, float, float, 
     ("car", "passenger", 4.5, 1.9, 1.5, 50.0, 2.6, 4.5, 0.5, 0.1),
     ("van", "delivery", 5.4, 2.0, 2.4, 40.0, 2.0, 4.0, 0.5, 0.1),
     ("truck", "truck", 8.5, 2.5, 3.4, 30.0, 1.3, 4.0, 0.5, 0.05),
+    ("bus", "bus", 12.0, 2.55, 3.2, 25.0, 1.2, 4.0, 0.5, 0.05),
     # CAVs: car-sized, no driver imperfection or speed spread so their timing follows the plan.
     ("cav", "passenger", 4.5, 1.9, 1.5, 50.0, 2.6, 4.5, 0.0, 0.0),
 )
-_BACKGROUND_MIX = (("car", 0.80), ("van", 0.12), ("truck", 0.08))
-_KIND = {"car": "car", "van": "van", "truck": "truck", "cav": "car"}
+_KIND = {"car": "car", "van": "van", "truck": "truck", "bus": "bus", "cav": "car"}
 _MOVEMENT_WEIGHT = {"straight": 2.0, "left": 1.0, "right": 1.0}
 _MIN_GAP = 2.5  # m, standstill gap of every vehicle type
 _BG_CHUNK_S = 30.0  # background departures are generated this far ahead, lazily
@@ -105,6 +106,9 @@ class SumoBackend(BackendBase):
         self._net = sumolib.net.readNet(scenario.traffic.net, withInternal=True)
         self.topology = analyse_network(self._net)
         check_standing(self._net, scenario)
+        if not scenario.traffic.vehicle_mix.shares():
+            raise ConfigError(f"{scenario.source}: traffic.vehicle_mix: every share is 0; allowed: shares >= 0, "
+                              "at least one above 0")
         self._static = load_sumo_map(scenario.traffic.net, scenario.traffic.buildings,
                                      scenario.traffic.building_height_m, scenario.seed)
         self._running = False
@@ -323,7 +327,7 @@ class SumoBackend(BackendBase):
         arm = self.topology.arms[int(self._rng.integers(len(self.topology.arms)))]
         w = np.array([_MOVEMENT_WEIGHT[r.movement] for r in arm.routes])
         route = arm.routes[int(self._rng.choice(len(arm.routes), p=w / w.sum()))]
-        types, probs = zip(*_BACKGROUND_MIX, strict=True)
+        types, probs = zip(*self.scenario.traffic.vehicle_mix.shares(), strict=True)
         vtype = types[int(self._rng.choice(len(types), p=np.asarray(probs)))]
         return self._bg_next_t, route, vtype
 

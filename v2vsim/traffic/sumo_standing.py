@@ -61,7 +61,14 @@ def insert_standing(ls: ModuleType, net: sumolib.net.Net, scenario: Scenario) ->
         ls.route.add(rid, [s.edge])
         ls.vehicle.add(vid, rid, typeID=s.type, depart="0", departLane=str(s.lane), departPos=f"{pos:.2f}",
                        departSpeed="0")
-        ls.vehicle.setStop(vid, s.edge, pos=pos, laneIndex=s.lane, duration=_FOREVER_S)
+        try:
+            ls.vehicle.setStop(vid, s.edge, pos=pos, laneIndex=s.lane, duration=_FOREVER_S)
+        except ls.TraCIException:
+            # libsumo 1.28 refuses some stops on a lane before the vehicle is in ("not downstream the current
+            # route"; seen on generated towns' lanes at 47-70 % of their length): hold it where it is inserted
+            ls.vehicle.setSpeedMode(vid, 0)
+            ls.vehicle.setLaneChangeMode(vid, 0)
+            ls.vehicle.setSpeed(vid, 0.0)
         ids.append(vid)
     return tuple(ids)
 

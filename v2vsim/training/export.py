@@ -9,6 +9,7 @@ from pathlib import Path
 
 from models import zoo
 from v2vsim.data.layout import runs_of
+from v2vsim.training.held_out import data_inputs_sha256
 from v2vsim.training.stages import (
     COMPRESS,
     EXTRAPOLATE,
@@ -42,7 +43,8 @@ def export(args: TrainArgs, spec: StageSpec, state: dict, history: list, wall_s:
         "stage": spec.name,
         "command": args.command or f"v2vsim train --data {args.data} --stage {spec.name} --out {args.out}",
         "data": {"root": str(args.data), "runs": runs,
-                 "train_frames": sum(r["frames"] for r in runs_of(manifest, "train"))},
+                 "train_frames": sum(r["frames"] for r in runs_of(manifest, "train")),
+                 "inputs_sha256": data_inputs_sha256(args.data)},
         "epochs": spec.epochs, "samples_per_epoch": spec.samples_per_epoch, "batch": spec.batch,
         "wall_s": round(wall_s, 1), "device": args.device, "threads": args.threads, "bf16": args.bf16,
         "validation": history[-1]["validation"] if history else None,

@@ -46,6 +46,7 @@ from v2vsim.training.cache import (
 )
 from v2vsim.training.export import export
 from v2vsim.training.extrapolate import extrapolate_batch
+from v2vsim.training.held_out import check_held_out, is_v2vsim_dataset
 from v2vsim.training.loop import CHECKPOINT_EVERY_S, Checkpoint, Progress, one_cycle
 from v2vsim.training.losses import distill_loss, perception_loss
 from v2vsim.training.prepare import (
@@ -269,6 +270,8 @@ def batches(ds: CooperativeDataset, perm: np.ndarray, batch: int, first: int, st
 
 
 def main_train(args: TrainArgs, log=sys.stderr) -> int:
+    if is_v2vsim_dataset(args.data):  # the benchmark's networks never train (v2vsim/training/held_out.py)
+        check_held_out(args.data)
     if args.stage == ALIGN:  # a camera type joins the LiDAR zoo at --out (v2vsim.training.align)
         t0 = time.monotonic()
         run_align(args, log=log)
