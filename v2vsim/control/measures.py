@@ -57,6 +57,10 @@ class DrivenFrame:
     route_m: float | None = None  # its route (control.route_m) and how much of it is behind it (the driving score)
     route_done_m: float = 0.0
     finished: bool = False  # it completed its route at this frame
+    # the scenario's critical actor (v2vsim/control/critical.py): its truth (x, y, speed, footprint gap to this
+    # vehicle) and the planner's track seen this frame nearest to it (x, y, speed, age); None: absent / no track
+    critical: tuple[float, float, float, float] | None = None
+    critical_track: tuple[float, float, float, int] | None = None
 
 
 def _onsets(flags: Sequence[bool]) -> int:

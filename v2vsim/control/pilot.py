@@ -15,6 +15,7 @@ import numpy as np
 import shapely
 
 from v2vsim.config import Scenario
+from v2vsim.control.critical import critical_actor
 from v2vsim.control.measures import DrivenFrame
 from v2vsim.control.perceived import Obstacle, obstacles_from_bev, obstacles_from_boxes, obstacles_from_truth
 from v2vsim.control.planner import Plan, PlannerConfig, RouteAhead, plan
@@ -71,6 +72,7 @@ class Pilot:
         self.tracks: tuple[Track, ...] = ()
         self._next_id = 0
         self.frames: list[DrivenFrame] = []
+        self.critical = critical_actor(sc)  # the actor the critical-actor measure follows (None: none)
 
     def perceived(self, world: WorldState, pred: Prediction | None) -> tuple[Obstacle, ...]:
         """What the method saw, in the world frame (oracle: every other vehicle)."""
@@ -104,11 +106,25 @@ class Pilot:
         gap, closest = _closest(me, others)
         near = tuple((a.id, a.pose.x, a.pose.y, a.pose.yaw) for a in others
                      if np.hypot(a.pose.x - me.pose.x, a.pose.y - me.pose.y) <= NEAR_M)
+        crit, crit_track = self._critical(world, me)
         logged = DrivenFrame(frame=world.frame, time=world.time, x=me.pose.x, y=me.pose.y, yaw=me.pose.yaw,
                              speed=me.speed, odometer_m=state.odometer_m, in_junction=state.in_junction,
                              collisions=state.collisions, ssm=state.ssm, min_gap_m=gap, closest=closest,
                              commanded_speed=p.speed, reason=p.reason, phantom=phantom, others=near,
                              red_m=state.red_m, route_m=state.route_m, route_done_m=state.route_done_m,
-                             finished=state.finished)
+                             finished=state.finished, critical=crit, critical_track=crit_track)
         self.frames.append(logged)
         return PilotStep(plan=p, tracks=self.tracks, logged=logged)
+
+    def _critical(self, world: WorldState, me: Actor) -> tuple[tuple[float, float, float, float] | None,
+                                                              tuple[float, float, float, int] | None]:
+        """The critical actor's truth and the nearest track seen this frame (DrivenFrame.critical*)."""
+        actor = world.actor(self.critical) if self.critical is not None else None
+        if actor is None:
+            return None, None
+        truth = (actor.pose.x, actor.pose.y, actor.speed, float(_footprint(me).distance(_footprint(actor))))
+        seen = [t for t in self.tracks if t.missed == 0]
+        if not seen:
+            return truth, None
+        t = min(seen, key=lambda t: (np.hypot(t.x - actor.pose.x, t.y - actor.pose.y), t.id))
+        return truth, (t.x, t.y, float(np.hypot(t.vx, t.vy)), t.age)

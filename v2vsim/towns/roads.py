@@ -13,6 +13,7 @@ outwards), `T<i>_in` / `T<i>_out` on the side street.
 from __future__ import annotations
 
 import math
+import re
 import shutil
 import subprocess
 import xml.etree.ElementTree as ET
@@ -24,6 +25,7 @@ from v2vsim.towns.plan import ArmPlan, TownPlan
 
 NETCONVERT_MISSING = ("town generation needs SUMO's netconvert on the PATH: pip install 'v2vsim[towns]' "
                       "(the eclipse-sumo wheel)")
+_HEADER = re.compile(r"<!-- generated on .*?-->", re.DOTALL)
 _SIDE_STREET_M = (70.0, 110.0)  # the side street's length range is fixed by its bearing's draw (see _side_len)
 
 
@@ -110,4 +112,8 @@ def build_net(plan: TownPlan, folder: Path) -> Path:
     done = subprocess.run(cmd, capture_output=True, text=True)
     if done.returncode != 0:
         raise RuntimeError(f"netconvert failed for {plan.name} ({done.returncode}): {done.stderr.strip()[-400:]}")
+    # netconvert's header comment holds the time and the absolute paths: without it a seed gives the same bytes
+    text = _HEADER.sub(f"<!-- {plan.name}: built by netconvert from {plan.name}.nod.xml, .edg.xml, .con.xml -->",
+                       net.read_text(), count=1)
+    net.write_text(text)
     return net

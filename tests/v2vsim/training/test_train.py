@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import io
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,6 +17,7 @@ from v2vsim.config import load_scenario
 from v2vsim.data.layout import DatasetError
 from v2vsim.data.torch_dataset import CooperativeDataset, collate
 from v2vsim.perception.build import build_agent_encoder, build_method_models, method_checkpoints
+from v2vsim.training.held_out import sha256_file
 from v2vsim.training.losses import perception_loss
 from v2vsim.training.stages import SPECS, TrainArgs, build_stage_model
 from v2vsim.training.train import forward, run_stage
@@ -64,6 +66,9 @@ def test_stages_chain_into_a_loadable_zoo(tiny_dataset, tmp_path) -> None:
     assert entry["methods"] == {"none": "none.pt", "late": "none.pt", "cobevt": "cobevt.pt"}
     info = entry["files"]["cobevt.pt"]
     assert info["data"]["runs"]["train"] == ["intersection_s700"] and info["wall_s"] > 0
+    # the zoo keeps what it was trained on by content: the intersection's net and buildings, no benchmark file
+    assert info["data"]["inputs_sha256"] == sorted({sha256_file(Path("scenarios/nets/intersection.net.xml")),
+                                                    sha256_file(Path("scenarios/nets/intersection.poly.xml"))})
     assert info["validation"]["cobevt"]["frames"] == 1  # 2 validation frames, every 2nd one scored
 
     sc = load_scenario("scenarios/intersection.yaml", [f"perception.weights={tmp_path / 'zoo'}"])
