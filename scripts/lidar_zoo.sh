@@ -11,7 +11,8 @@ WORK=${2:-runs/train}
 ZOO=${3:-models/weights}
 V=${V2VSIM:-v2vsim}
 BF16=${BF16:-1}
-scripts/zoo_data.sh "$DATA" 20 --jobs 2
+# SKIP_DATA=1: DATA is recorded already (scripts/towns_zoo.sh records the generated-town dataset first)
+[ "${SKIP_DATA:-0}" = 1 ] || scripts/zoo_data.sh "$DATA" 20 --jobs 2
 # single (encoder + heads) -> cache (its frozen features) -> compress (the wire's compressors, ratio 8 = the
 # wire) -> none/late heads, early, then every intermediate method on the same cached features through the
 # wire; DiscoNet last (its teacher is early).
