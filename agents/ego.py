@@ -42,7 +42,7 @@ from v2vsim.comm.inbox import Inbox
 from v2vsim.comm.stats import CommStats
 from v2vsim.comm.wire_spec import EgoDecoder, ego_wire_spec
 from v2vsim.config import Scenario, neighbours_silent
-from v2vsim.control.critical import critical_measures
+from v2vsim.control.critical import critical_measures, critical_total
 from v2vsim.control.measures import driving_block, vehicle_measures
 from v2vsim.control.pilot import Pilot
 from v2vsim.control.score import PENALTY, score_block, total_score
@@ -161,6 +161,7 @@ def driving_summary(sc: Scenario, me: str, pilot: Pilot, word: dict, time_limit_
         per |= critical_measures(pilot.frames, pilot.critical)
     block = driving_block({me: per}, {**header, "route_m": c.route_m, "penalties": dict(PENALTY)})
     block["total"] |= total_score([v for v in block["vehicles"].values() if v.get("frames")])
+    block["total"] |= critical_total(block["vehicles"], me)
     return block
 
 

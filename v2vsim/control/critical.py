@@ -81,3 +81,10 @@ def critical_measures(frames: Sequence[DrivenFrame], actor: str | None) -> dict[
     out["critical_position_error_m"] = round(sum(pos) / len(pos), 3) if pos else None
     out["critical_speed_error_mps"] = round(sum(speed) / len(speed), 3) if speed else None
     return out
+
+
+def critical_total(vehicles: dict[str, dict[str, Any]], ego: str) -> dict[str, Any]:
+    """`driving.total`'s critical keys: the ego's own (the family's critical actor is hidden from it; the other
+    driven vehicles' are in `vehicles`). Null keys where it has none."""
+    mine = vehicles.get(ego) or {}
+    return {k: mine.get(k) for k in KEYS}

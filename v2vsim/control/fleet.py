@@ -21,6 +21,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from v2vsim.control.critical import critical_total
 from v2vsim.control.measures import driving_block
 from v2vsim.control.score import total_score
 from v2vsim.evaluation.report import driving_md
@@ -55,6 +56,7 @@ def merge_driving(blocks: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     scored = [v for v in vehicles.values() if v.get("frames")]
     if any("driving_score" in v for v in scored):
         merged["total"] |= total_score(scored)
+    merged["total"] |= critical_total(vehicles, header["driven"][0])
     merged["total"]["fleet"] = fleet_counts(vehicles)
     return merged
 

@@ -219,6 +219,19 @@ def driving_md(d: dict | None) -> list[str]:
             lines.append(f"| {v} | {f(m['driving_score'])} | {f(m['route_completion'])} | "
                          f"{'yes' if m['success'] else 'no'} | {f(m['finished_at_s'])} | {inf} | "
                          f"{f(m.get('peak_jerk_mps3'))} |")
+    crit = [(v, m) for v, m in d["vehicles"].items() if m.get("critical_actor")]
+    if crit:
+        lines += ["", f"The critical actor ({crit[0][1]['critical_actor']}) on the map each vehicle drove on: detected "
+                  "when a track of its planner lies within 2 m of it; lead time before the conflict (first contact, "
+                  "else closest approach); the track's error up to the frame it entered the junction "
+                  "(v2vsim/control/critical.py):", "",
+                  "| vehicle | first detected (frame) | conflict (frame) | lead time s | held | position error m | "
+                  "speed error m/s |", "|---|---|---|---|---|---|---|"]
+        for v, m in crit:
+            first = "missed" if m["critical_missed"] else m["critical_first_detected_frame"]
+            lines.append(f"| {v} | {first} | {m['critical_conflict_frame']} | {f(m['critical_lead_time_s'])} | "
+                         f"{f(m['critical_detected_share'])} | {f(m['critical_position_error_m'])} | "
+                         f"{f(m['critical_speed_error_mps'])} |")
     lines += ["", "Definitions: docs/scenario.md \"control\" (SUMO's SSM treats conflict areas as orthogonal lanes "
               "and ignores lateral conflicts; the trajectory PET is measured beside it); the score: "
               "v2vsim/control/score.py."]

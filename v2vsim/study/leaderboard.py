@@ -29,7 +29,13 @@ from v2vsim.study.summary import cell
 ORACLE, BASELINE = "oracle", "none"
 # measure -> (label, what a run's sweep row holds); efficiency is derived from finished_at_s (below)
 MEASURES = {"driving_score": "driving score", "success": "success rate", "collision": "collision rate",
-            "route_completion": "route completion", "efficiency": "efficiency", "iou_vehicle": "vehicle IoU"}
+            "route_completion": "route completion", "efficiency": "efficiency", "iou_vehicle": "vehicle IoU",
+            # the critical-actor measure (v2vsim/control/critical.py) of the ego: detected before the conflict (0/1),
+            # its lead time with a miss counted as 0 s, and the share of frames it stayed detected (detected only)
+            "critical_detected": "critical actor detected", "critical_lead_s": "critical lead time (s)",
+            "critical_share": "critical actor held"}
+# what may predict a run's success (predictors_md): the map-wide measures beside the critical actor's
+PREDICTORS = ("iou_vehicle", "ap50", "critical_detected", "critical_lead_s", "critical_share")
 RANKED = ("driving_score", "success", "collision", "efficiency")  # the measures compared pairwise
 ALL = "overall"
 
@@ -61,6 +67,7 @@ def episodes_of(family: str, doc: dict[str, Any]) -> dict[Episode, dict[str, dic
             # the map it drove on (oracle drove on ground truth; its row scores `none`, which it did not use)
             "iou_vehicle": None if m == ORACLE else _num(row.get("iou_vehicle")),
             "ap50": None if m == ORACLE else _num(row.get("ap50")),
+            **_critical(row),
         }
     for runs in out.values():
         ref = (runs.get(ORACLE) or {}).get("finished_at_s")
@@ -69,6 +76,40 @@ def episodes_of(family: str, doc: dict[str, Any]) -> dict[Episode, dict[str, dic
             v["efficiency"] = (ref / mine if ref is not None and mine else None) if m != ORACLE else (
                 1.0 if mine is not None else None)
     return out
+
+
+def _critical(row: dict[str, Any]) -> dict[str, float | None]:
+    """The ego's critical-actor figures from a sweep row (None where the family has no critical actor)."""
+    missed = row.get("driving_critical_missed")
+    if missed is None or (isinstance(missed, float) and math.isnan(missed)):
+        return {"critical_detected": None, "critical_lead_s": None, "critical_share": None}
+    detected = not bool(missed)
+    return {"critical_detected": float(detected),
+            "critical_lead_s": (_num(row.get("driving_critical_lead_time_s")) or 0.0) if detected else 0.0,
+            "critical_share": _num(row.get("driving_critical_detected_share")) if detected else None}
+
+
+def auc(values: Sequence[float], success: Sequence[bool]) -> float | None:
+    """The probability that a successful run's value exceeds a failed run's (ties count half): 0.5 is no better
+    than chance, 1 a perfect predictor (the Mann-Whitney U statistic over the two groups' sizes)."""
+    won = [v for v, s in zip(values, success, strict=True) if s]
+    lost = [v for v, s in zip(values, success, strict=True) if not s]
+    if not won or not lost:
+        return None
+    a, b = np.asarray(won)[:, None], np.asarray(lost)[None, :]
+    return float(((a > b).sum() + 0.5 * (a == b).sum()) / (len(won) * len(lost)))
+
+
+def predictors_md(eps: dict[Episode, dict[str, dict[str, float | None]]]) -> list[str]:
+    """How well each perception measure of the map a method drove on predicts the run's success, over every
+    (episode, method) run but the oracle's: AUC, and the runs it is measured on."""
+    lines = ["| measure | runs | AUC for success |", "|---|---|---|"]
+    for k in PREDICTORS:
+        pairs = [(v[k], bool(v["success"])) for runs in eps.values() for m, v in runs.items()
+                 if m != ORACLE and v.get(k) is not None and v.get("success") is not None]
+        score = auc([p[0] for p in pairs], [p[1] for p in pairs]) if pairs else None
+        lines.append(f"| {MEASURES.get(k, k)} | {len(pairs)} | {'-' if score is None else f'{score:.3f}'} |")
+    return lines
 
 
 def _num(v: Any) -> float | None:
@@ -195,18 +236,26 @@ def leaderboard_md(bs: Sequence[Board], meta: dict[str, Any],
         order = sorted(b.alone, key=lambda m: -(b.alone[m]["driving_score"].mean
                                                  if b.alone[m]["driving_score"] else -1.0))
         lines += [f"## {'Overall' if b.scope == ALL else 'Family ' + b.scope} ({b.episodes} episodes)", "",
-                  "| method | driving score | success | collision rate | efficiency | vehicle IoU | score - none |"
-                  " success - none | collisions - none |", "|---|---|---|---|---|---|---|---|---|"]
+                  "| method | driving score | success | collision rate | efficiency | vehicle IoU | critical detected |"
+                  " critical lead (s) | score - none | success - none | collisions - none |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|"]
         for m in order:
             a, v = b.alone[m], b.versus_none.get(m, {})
             lines.append(f"| {m} | {cell(a['driving_score'])} | {cell(a['success'])} | {cell(a['collision'])} | "
-                         f"{cell(a['efficiency'])} | {cell(a['iou_vehicle'])} | "
+                         f"{cell(a['efficiency'])} | {cell(a['iou_vehicle'])} | {cell(a['critical_detected'])} | "
+                         f"{cell(a['critical_lead_s'])} | "
                          + " | ".join(cell(v[k].diff, True) if k in v else "-"
                                       for k in ("driving_score", "success", "collision")) + " |")
         lines.append("")
         if per_family and b.scope in per_family:
             lines += ["Per configuration, success / collision rate over the seeds:", "",
                       *config_table(per_family[b.scope], list(b.alone)), ""]
+        if b.scope == ALL and per_family:
+            lines += ["### What predicts success", "",
+                      "Over every run but the oracle's: the chance that a successful run's figure beats a failed "
+                      "one's (AUC; 0.5 = chance). Critical detected: the planner held a track within 2 m of the "
+                      "family's critical actor at some frame before the conflict; lead time counts a miss as 0 s "
+                      "(v2vsim/control/critical.py).", "", *predictors_md(pooled(per_family)), ""]
         if b.scope == ALL:
             lines += ["### Every pair (driving score, a - b)", "",
                       "| a | b | n | a - b | separated | episodes needed (80 % power) |", "|---|---|---|---|---|---|"]
