@@ -8,7 +8,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=$1
-W=${2:-models/weights}
+W=$(realpath "${2:-models/weights}")  # absolute: a relative weights path resolves against the scenario
 SEEDS=${3:-0 1}
 V=${V2VSIM:-v2vsim}
 run() {  # run NAME SCENARIO VARIANT SEED [--set ...]
