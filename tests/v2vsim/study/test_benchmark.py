@@ -15,7 +15,7 @@ from v2vsim.config import ConfigError, load_scenario
 from v2vsim.study import runs as runs_mod
 from v2vsim.study.benchmark import DRIVING_ONLY, BenchmarkArgs, benchmark, family_sweeps
 from v2vsim.study.catalogue import load_catalogue
-from v2vsim.study.leaderboard import Episode, board, config_table, episodes_of, needed_episodes
+from v2vsim.study.leaderboard import Episode, auc, board, config_table, episodes_of, needed_episodes
 from v2vsim.study.plan import RunSpec
 
 REPO = Path(__file__).resolve().parents[3]
@@ -291,3 +291,26 @@ def test_driven_sees_drives_each_familys_seeing_cavs_beside_the_ego_and_they_are
         assert sc.cavs.egos_among(placed) == ["cav0", *f.sees]
         assert load_scenario(f.scenario, list(plain[f.name].overrides)).cavs.egos_among(placed) == ["cav0"]
         assert load_scenario(f.scenario, list(every[f.name].overrides)).cavs.egos_among(placed) == placed
+
+
+def test_the_critical_actor_columns_become_leaderboard_measures() -> None:
+    base = {"control.method": "cobevt", "seed": 0, "method": "cobevt", "status": "complete",
+            "driving_method": "cobevt", "driving_driving_score": 1.0, "driving_success": 1, "driving_collisions": 0}
+    rows = [{**base, "seed": 0, "driving_critical_missed": 0, "driving_critical_lead_time_s": 1.5,
+             "driving_critical_detected_share": 0.8},
+            {**base, "seed": 1, "driving_critical_missed": 1, "driving_critical_lead_time_s": None,
+             "driving_critical_detected_share": None, "driving_success": 0},
+            {**base, "seed": 2}]  # a family without a critical actor: no such columns
+    eps = episodes_of("f", {"grid": [{"key": "control.method"}], "rows": rows})
+    got = {e.seed: runs["cobevt"] for e, runs in eps.items()}
+    assert (got[0]["critical_detected"], got[0]["critical_lead_s"], got[0]["critical_share"]) == (1.0, 1.5, 0.8)
+    assert (got[1]["critical_detected"], got[1]["critical_lead_s"], got[1]["critical_share"]) == (0.0, 0.0, None)
+    assert got[2]["critical_detected"] is None and got[2]["critical_lead_s"] is None
+
+
+def test_auc_is_the_chance_a_success_outscores_a_failure() -> None:
+    assert auc([0.9, 0.8, 0.1, 0.2], [True, True, False, False]) == 1.0
+    assert auc([0.1, 0.2, 0.9, 0.8], [True, True, False, False]) == 0.0
+    assert auc([0.5, 0.5], [True, False]) == 0.5
+    assert auc([0.3, 0.7, 0.5], [True, False, True]) == 0.0  # both successes below the failure
+    assert auc([1.0], [True]) is None
