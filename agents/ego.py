@@ -248,7 +248,8 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
 
     stats = CommStats()
     inboxes = {k: Inbox(sc.comm, sc.seed, me, k, stats if k == "features" else CommStats()) for k in kinds}
-    scores = {m: MethodScore(boxes=ApAccumulator(sort=sc.evaluation.ap_sort) if lidar else None) for m in models}
+    scores = {m: MethodScore(boxes=ApAccumulator(sort=sc.evaluation.ap_sort) if lidar else None, size_m=sc.bev.size_m)
+              for m in models}
     ego_poses: dict[int, Pose] = {}
     out_dir = Path(args.out) / ("" if me == args.egos[0] else f"ego_{me}")
     recorder = None

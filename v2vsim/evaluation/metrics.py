@@ -185,9 +185,25 @@ def vehicle_iou(p_vehicle: np.ndarray, gt: dict[str, np.ndarray]) -> float | Non
     return acc.last_iou
 
 
+# Rings of distance from the ego (m, on the default 100 m grid; scaled with bev.size_m): where a vehicle is decides
+# how many LiDAR points it gets and who else sees it, so the visible-vehicle IoU is also reported per ring.
+RANGE_RINGS = ((0.0, 0.2), (0.2, 0.35), (0.35, 0.5))  # as shares of the grid's side
+
+
+def ring_masks(shape: tuple[int, ...], size_m: float) -> dict[str, np.ndarray]:
+    """{"0-20": bool mask of `shape`, ...}: the cells whose centre lies in each ring around the grid's centre (the
+    ego), keyed by the ring's metres (the grid's first axis spans size_m); the last ring keeps the grid's corners out
+    (a circle, not the square)."""
+    cell = size_m / shape[0]
+    rows = (np.arange(shape[0]) + 0.5 - shape[0] / 2) * cell
+    cols = (np.arange(shape[1]) + 0.5 - shape[1] / 2) * cell
+    dist = np.hypot(rows[:, None], cols[None, :])
+    return {f"{lo * size_m:g}-{hi * size_m:g}": (dist >= lo * size_m) & (dist < hi * size_m) for lo, hi in RANGE_RINGS}
+
+
 @dataclass
 class MethodScore:
-    """Everything metrics.json reports for one method."""
+    """Everything metrics.json reports for one method. `size_m`: the BEV grid's side (the range rings' scale)."""
 
     vehicle: IouAccumulator = field(default_factory=IouAccumulator)
     vehicle_all: IouAccumulator = field(default_factory=IouAccumulator)
@@ -197,6 +213,9 @@ class MethodScore:
     fusion_ms: list[float] = field(default_factory=list)
     bytes: list[int] = field(default_factory=list)
     frames: int = 0
+    size_m: float = 100.0
+    vehicle_by_range: dict[str, IouAccumulator] = field(default_factory=dict)
+    _rings: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
 
     def add_segmentation(self, probs: dict[str, np.ndarray], gt: dict[str, np.ndarray],
                          frame: int | None = None) -> None:
@@ -206,7 +225,12 @@ class MethodScore:
         key = self.frames if frame is None else frame
         self.frames += 1
         veh = probs["vehicle"] >= THRESHOLD
-        self.vehicle.add(*visible_vehicle_masks(probs["vehicle"], gt), frame=key)
+        pred, truth, ignore = visible_vehicle_masks(probs["vehicle"], gt)
+        self.vehicle.add(pred, truth, ignore, frame=key)
+        if not self._rings or next(iter(self._rings.values())).shape != pred.shape:
+            self._rings = ring_masks(pred.shape, self.size_m)
+        for name, ring in self._rings.items():
+            self.vehicle_by_range.setdefault(name, IouAccumulator()).add(pred & ring, truth & ring, ignore, frame=key)
         self.vehicle_all.add(veh, gt["dynamic"], frame=key)
         if "road" in probs:
             self.road.add(probs["road"] >= THRESHOLD, gt["road"], frame=key)
@@ -224,6 +248,8 @@ class MethodScore:
             "iou_vehicle": r(self.vehicle.iou),
             "iou_vehicle_frame_mean": r(self.vehicle.frame_mean),
             "iou_vehicle_all": r(self.vehicle_all.iou),
+            # visible-vehicle IoU per ring of distance from the ego (m): where the gap is (near or far)
+            "iou_vehicle_by_range": {k: r(acc.iou) for k, acc in self.vehicle_by_range.items()},
             "iou_road": r(self.road.iou),
             "iou_lane": r(self.lane.iou),
             "ap50": r(ap50),

@@ -23,6 +23,7 @@ COUNTS_KEY = "iou_vehicle_counts"  # per-frame lists: read into Row.per_frame, n
 FRAMES_KEY = "iou_vehicle_frames"  # the frame index of each of those counts (absent in older runs: 0, 1, ...)
 # a run's own intervals against `none` (over its frames); the sweep computes its own over seeds and frames
 RUN_ONLY_KEYS = ("vs_none",)
+RANGE_KEY = "iou_vehicle_by_range"  # {ring: IoU}: flattened into a column per ring
 IOU_ENTITY = "/metrics/iou_vehicle/"
 
 
@@ -93,6 +94,8 @@ def collect(results: Sequence[RunResult]) -> list[Row]:
             frames = metrics.pop(FRAMES_KEY, None)
             for key in RUN_ONLY_KEYS:
                 metrics.pop(key, None)
+            # the per-ring IoU (v2vsim.evaluation.metrics.RANGE_RINGS) as one column per ring: iou_vehicle_range_0-20
+            metrics |= {f"iou_vehicle_range_{ring}": v for ring, v in (metrics.pop(RANGE_KEY, None) or {}).items()}
             if counts is not None:
                 keys = frames if frames is not None else range(len(counts))
                 per_frame = {int(k): i / u for k, (i, u) in zip(keys, counts, strict=True) if u}

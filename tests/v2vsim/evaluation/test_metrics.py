@@ -186,3 +186,22 @@ def test_camera_report_puts_the_run_beside_the_papers_camera_table() -> None:
     assert "LiDAR AP@0.7" not in md
     lidar = _summary()
     assert "LiDAR AP@0.7" in report_md(metrics_json(lidar, {}, CommStats(), {}, None), lidar)
+
+
+def test_vehicle_iou_by_range_scores_each_ring_on_its_own() -> None:
+    from v2vsim.evaluation.metrics import MethodScore, ring_masks
+
+    rings = ring_masks((64, 64), 100.0)
+    assert list(rings) == ["0-20", "20-35", "35-50"]
+    assert not (rings["0-20"] & rings["20-35"]).any() and not rings["35-50"][0, 0]  # disjoint; corners out
+    s = MethodScore(size_m=100.0)
+    gt = {"dynamic": np.zeros((64, 64), bool), "visible": np.zeros((64, 64), bool)}
+    near, far = (32, 33), (5, 32)  # about 1 m and 41 m from the ego (1.5625 m cells)
+    for cell in (near, far):
+        gt["visible"][cell] = gt["dynamic"][cell] = True
+    probs = {"vehicle": np.zeros((64, 64))}
+    probs["vehicle"][near] = 1.0  # the near one found, the far one missed
+    s.add_segmentation(probs, gt)
+    doc = s.to_json(None)
+    assert doc["iou_vehicle_by_range"] == {"0-20": 1.0, "20-35": None, "35-50": 0.0}
+    assert doc["iou_vehicle"] == 0.5
