@@ -34,5 +34,29 @@ def main(out: Path) -> None:
                   f"{mean('cobevt', 'ap70')} |")
 
 
+def range_table(out: Path) -> None:
+    """Per scenario and variant, none's and CoBEVT's visible-vehicle IoU in each ring of distance from the ego (runs
+    that report it: iou_vehicle_by_range)."""
+    print("\n| scenario | variant | runs | none 0-20 / 20-35 / 35-50 m | CoBEVT 0-20 / 20-35 / 35-50 m |")
+    print("|---|---|---|---|---|")
+    for fam in sorted(p for p in out.iterdir() if p.is_dir()):
+        for variant in VARIANTS:
+            docs = [json.loads(m.read_text()) for m in sorted((fam / variant).glob("seed*/metrics.json"))]
+            docs = [d for d in docs if "iou_vehicle_by_range" in d["methods"]["none"]]
+            if not docs:
+                continue
+
+            def rings(method: str, docs: list[dict] = docs) -> str:
+                cells = []
+                for ring in ("0-20", "20-35", "35-50"):
+                    vals = [d["methods"][method]["iou_vehicle_by_range"].get(ring) for d in docs]
+                    vals = [v for v in vals if v is not None]
+                    cells.append(f"{sum(vals) / len(vals):.3f}" if vals else "-")
+                return " / ".join(cells)
+
+            print(f"| {fam.name} | {WHAT[variant]} | {len(docs)} | {rings('none')} | {rings('cobevt')} |")
+
+
 if __name__ == "__main__":
     main(Path(sys.argv[1]))
+    range_table(Path(sys.argv[1]))
