@@ -15,23 +15,27 @@ BF16=${BF16:-1}
 [ "${SKIP_DATA:-0}" = 1 ] || scripts/zoo_data.sh "$DATA" 20 --jobs 2
 # single (encoder + heads) -> cache (its frozen features) -> compress (the wire's compressors, ratio 8 = the
 # wire) -> none/late heads, early, then every intermediate method on the same cached features through the
-# wire; DiscoNet last (its teacher is early).
-$V train --data "$DATA" --stage single --out "$ZOO" --work "$WORK" --resume
-$V train --data "$DATA" --stage cache --out "$ZOO" --work "$WORK"
-$V train --data "$DATA" --stage compress --out "$ZOO" --work "$WORK" --resume
+# wire; DiscoNet last (its teacher is early). A stage whose checkpoint ZOO holds already is skipped (a resume on a
+# fresh machine retrains nothing finished; delete the file to train it again); the cache is re-made when WORK
+# lacks it (from the zoo's single.pt).
+Z="$ZOO/pointpillars_tiny"
+have() { [ -f "$Z/$1" ]; }
+have single.pt || $V train --data "$DATA" --stage single --out "$ZOO" --work "$WORK" --resume
+[ -f "$WORK/cache/done.txt" ] || $V train --data "$DATA" --stage cache --out "$ZOO" --work "$WORK"
+have compressor_r64.pt || $V train --data "$DATA" --stage compress --out "$ZOO" --work "$WORK" --resume
 flags=()
 [ "$BF16" = 1 ] && flags=(--bf16)
 # the shipped zoo's recipe: the encoder stages (single, early) and CoBEVT in float32 (bfloat16 made CoBEVT's
 # stage slower here), the other heads and fusion methods in bfloat16
-$V train --data "$DATA" --stage none --out "$ZOO" --work "$WORK" --resume "${flags[@]}"
-$V train --data "$DATA" --stage early --out "$ZOO" --work "$WORK" --resume
-$V train --data "$DATA" --stage cobevt --out "$ZOO" --work "$WORK" --resume
+have none.pt || $V train --data "$DATA" --stage none --out "$ZOO" --work "$WORK" --resume "${flags[@]}"
+have early.pt || $V train --data "$DATA" --stage early --out "$ZOO" --work "$WORK" --resume
+have cobevt.pt || $V train --data "$DATA" --stage cobevt --out "$ZOO" --work "$WORK" --resume
 for stage in v2vnet attfuse fcooper disconet; do
-  $V train --data "$DATA" --stage $stage --out "$ZOO" --work "$WORK" --resume "${flags[@]}"
+  have $stage.pt || $V train --data "$DATA" --stage $stage --out "$ZOO" --work "$WORK" --resume "${flags[@]}"
 done
 # CoBEVT's learned latency extrapolation (comm.compensation), on top of its checkpoint
-$V train --data "$DATA" --stage extrapolate --out "$ZOO" --work "$WORK" --resume
+have cobevt_extrapolate.pt || $V train --data "$DATA" --stage extrapolate --out "$ZOO" --work "$WORK" --resume
 # the compression study's CoBEVT on the other wires (ratio 1 = uncompressed; 8 is the zoo's own wire, above)
 for r in ${WIRE_RATIOS:-1 16 32 64}; do
-  $V train --data "$DATA" --stage cobevt --wire-ratio "$r" --out "$ZOO" --work "$WORK" --resume
+  have cobevt_r$r.pt || $V train --data "$DATA" --stage cobevt --wire-ratio "$r" --out "$ZOO" --work "$WORK" --resume
 done
