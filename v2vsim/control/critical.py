@@ -30,6 +30,7 @@ from typing import Any
 
 from v2vsim.config import Scenario
 from v2vsim.control.measures import DrivenFrame
+from v2vsim.traffic.actor_ids import FOE_ID, HIDDEN_STOP_ID
 
 MATCH_M = 2.0  # a track whose centre is this close to the actor's true centre detects it
 KEYS = ("critical_actor", "critical_conflict_frame", "critical_first_detected_frame", "critical_lead_time_s",
@@ -38,9 +39,6 @@ KEYS = ("critical_actor", "critical_conflict_frame", "critical_first_detected_fr
 
 def critical_actor(sc: Scenario) -> str | None:
     """The scenario's critical actor's id (module doc), or None."""
-    from v2vsim.traffic.sumo_hidden_foe import FOE_ID
-    from v2vsim.traffic.sumo_standing import HIDDEN_STOP_ID
-
     if sc.traffic.hidden_foe is not None:
         return FOE_ID
     if sc.traffic.hidden_stop is not None:

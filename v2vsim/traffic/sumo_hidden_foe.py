@@ -52,6 +52,7 @@ import shapely
 import sumolib
 
 from v2vsim.config import ConfigError, Scenario
+from v2vsim.traffic.actor_ids import FOE_ID
 from v2vsim.traffic.sumo_network import Arm, Route, Topology
 from v2vsim.traffic.sumo_placement import _FOLLOWER_DECEL, CavPlan, _lanes_for, meet_ref
 from v2vsim.world.geometry import wrap_angle
@@ -59,7 +60,6 @@ from v2vsim.world.state import Building
 
 Side = Literal["left", "right", "opposite"]
 
-FOE_ID = "foe0"
 FOE_TYPE = "foe"
 _TIMING_SLACK_S = 1.0  # the foe's spot may move by this much driving time when the exact one is taken
 # A leader in the foe's lane must reach the junction this much earlier, or the foe catches up with it; one that

@@ -24,10 +24,9 @@ from types import ModuleType
 import sumolib
 
 from v2vsim.config import ConfigError, Scenario
+from v2vsim.traffic.actor_ids import HIDDEN_STOP_ID, STANDING_PREFIX
 from v2vsim.traffic.sumo_placement import CavPlan, meet_ref
 
-STANDING_PREFIX = "standing"
-HIDDEN_STOP_ID = "stopped0"
 _FOREVER_S = 1e6  # the stop's duration: longer than any run
 
 
