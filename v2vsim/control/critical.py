@@ -46,10 +46,16 @@ def critical_actor(sc: Scenario) -> str | None:
     return None
 
 
-def _detected(f: DrivenFrame) -> bool:
+def _track_error_m(f: DrivenFrame) -> float | None:
+    """Distance from the nearest seen track to the actor's true centre (None: no actor or no track)."""
     if f.critical is None or f.critical_track is None:
-        return False
-    return math.hypot(f.critical_track[0] - f.critical[0], f.critical_track[1] - f.critical[1]) <= MATCH_M
+        return None
+    return math.hypot(f.critical_track[0] - f.critical[0], f.critical_track[1] - f.critical[1])
+
+
+def _detected(f: DrivenFrame) -> bool:
+    err = _track_error_m(f)
+    return err is not None and err <= MATCH_M
 
 
 def critical_measures(frames: Sequence[DrivenFrame], actor: str | None) -> dict[str, Any]:
@@ -74,7 +80,7 @@ def critical_measures(frames: Sequence[DrivenFrame], actor: str | None) -> dict[
     out["critical_detected_share"] = round(sum(_detected(f) for f in since) / len(since), 4)
     commit = next((f.frame for f in since if f.in_junction), conflict.frame)
     judged = [f for f in since if f.frame <= commit and _detected(f)]
-    pos = [math.hypot(f.critical_track[0] - f.critical[0], f.critical_track[1] - f.critical[1]) for f in judged]
+    pos = [_track_error_m(f) for f in judged]
     speed = [abs(f.critical_track[2] - f.critical[2]) for f in judged if f.critical_track[3] > 1]
     out["critical_position_error_m"] = round(sum(pos) / len(pos), 3) if pos else None
     out["critical_speed_error_mps"] = round(sum(speed) / len(speed), 3) if speed else None

@@ -8,7 +8,6 @@ traffic, the sensor noise and hence every byte of a frame follow from (scenario,
 from __future__ import annotations
 
 import gzip
-import hashlib
 import json
 import multiprocessing
 import re
@@ -20,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from models import zoo
 from v2vsim.config import Scenario, load_scenario
 from v2vsim.data.layout import (
     FORMAT,
@@ -223,7 +223,7 @@ def scenario_inputs(sc: Scenario) -> dict[str, str]:
     for key in ("net", "buildings"):
         path = getattr(sc.traffic, key)
         if path is not None:
-            out[key] = hashlib.sha256(Path(path).read_bytes()).hexdigest()
+            out[key] = zoo.sha256(Path(path))
     return out
 
 

@@ -11,15 +11,11 @@ catalogue.
 
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
 
+from models.zoo import sha256 as sha256_file
 from v2vsim.data.layout import DatasetError, read_manifest, runs_of
-
-
-def sha256_file(path: Path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 def benchmark_inputs(catalogue: Path | None = None) -> dict[str, str]:
