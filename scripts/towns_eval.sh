@@ -2,9 +2,9 @@
 # The old zoo beside the new one, open loop, on worlds neither trained on (issue 65, docs/results.md "The zoo on
 # generated towns"): held-out seeds of the two old junctions, every benchmark family's scenario with its cast
 # (control off), and held-out generated towns (seeds 3000..). Every method, 150 frames, the default channel; one
-# `v2vsim sweep` per scenario over perception.weights = OLD,NEW, so each method's difference to `none` has its
-# paired interval over seeds (and frames) in OUT/<scenario>/sweep.md. Resumable. Then the tables
-# (scripts/towns_table.py).
+# `v2vsim sweep` per scenario and zoo, so each method's difference to `none` has its paired interval over seeds
+# (and frames) in OUT/<old|new>/<scenario>/sweep.md. Resumable. ONLY=old or ONLY=new runs one zoo's half (the old
+# zoo's can run while the new one trains). Then the tables (scripts/towns_table.py).
 #   scripts/towns_eval.sh OUT_DIR OLD_ZOO NEW_ZOO [SEEDS] [N_TOWNS]     (SEEDS default 0-1, N_TOWNS 10)
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -15,17 +15,20 @@ SEEDS=${4:-0-1}
 NT=${5:-10}
 V=${V2VSIM:-v2vsim}
 ALL="[none, late, early, attfuse, fcooper, v2vnet, disconet, cobevt]"
-sweep() {  # sweep SCENARIO NAME SEEDS
-  $V sweep "$1" --grid perception.weights="$OLD,$NEW" --seeds "$3" --frames 150 --set control=null \
-    --set "perception.methods=$ALL" --set output.rerun=false --out "$OUT/$2"
+sweep() {  # sweep SCENARIO NAME SEEDS: one sweep per zoo (a sweep skips the runs it finished before)
+  for label in ${ONLY:-old new}; do
+    zoo=$OLD; [ "$label" = new ] && zoo=$NEW
+    $V sweep "$1" --grid perception.weights="$zoo" --seeds "$3" --frames 150 --set control=null \
+      --set "perception.methods=$ALL" --set output.rerun=false --out "$OUT/$label/$2"
+  done
 }
 for sc in intersection t_junction left_turn_truck crossroads_occluded ramp_merge red_light_runner \
           blind_corner_stop t_junction_occluded; do
   sweep scenarios/$sc.yaml $sc "$SEEDS"
 done
-$V towns --seeds 3000-$((3000 + NT - 1)) --out "$OUT/towns" --no-check
+[ -d "$OUT/towns/town_$((3000 + NT - 1))" ] || $V towns --seeds 3000-$((3000 + NT - 1)) --out "$OUT/towns" --no-check
 for s in $(seq 3000 $((3000 + NT - 1))); do
   t=$(printf "town_%04d" "$s")
   sweep "$OUT/towns/$t/$t.yaml" "$t" 0
 done
-python scripts/towns_table.py "$OUT" "$OLD" "$NEW"
+[ -n "${ONLY:-}" ] || python scripts/towns_table.py "$OUT" "$OLD" "$NEW"

@@ -33,7 +33,7 @@ def group_of(scenario: str) -> str:
 
 def load(out: Path, zoos: dict[str, str]) -> list[dict]:
     rows = []
-    for sj in sorted(out.glob("*/sweep.json")):
+    for sj in sorted(out.glob("*/*/sweep.json")):  # OUT/<old|new>/<scenario>/sweep.json
         doc = json.loads(sj.read_text())
         for r in doc["rows"]:
             zoo = zoos.get(str(r.get("perception.weights")))

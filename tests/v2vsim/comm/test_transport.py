@@ -75,8 +75,22 @@ def test_unreachable_router_is_a_one_line_error(mode: str) -> None:
 
 
 def test_optional_peer_that_is_not_up_yet_does_not_fail() -> None:
-    s = T.open_session(TransportConfig(), peers=[f"tcp/127.0.0.1:{T.free_port()}"])
-    s.close()
+    """A session whose peer is not listening yet opens, and reaches that peer once it comes up."""
+    port = T.free_port()
+    early = T.open_session(TransportConfig(), peers=[T.loopback_endpoint(port)])
+    late = None
+    try:
+        late = T.open_session(TransportConfig(), port)
+        sub = T.Subscriber(late, T.subscription_key("r", "features"))
+        pub = T.Publisher(early, T.message_key("r", "features", "cav1"))
+        assert pub.wait_matched(15), "the session never reached the peer that came up after it"
+        pub.put(b"hello")
+        got = sub.get(timeout=10)
+        assert got is not None and got.data == b"hello"
+    finally:
+        if late is not None:
+            late.close()
+        early.close()
 
 
 def test_in_process_pub_sub() -> None:

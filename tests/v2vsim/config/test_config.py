@@ -188,9 +188,12 @@ def test_cli_bad_yaml_exits_2_without_traceback(tmp_path: Path) -> None:
 
 
 def test_shipped_scenarios_load() -> None:
-    for path in sorted((REPO / "scenarios").glob("*.yaml")):
+    """Every shipped scenario loads, names itself after its file (no default name slipped in) and has a network."""
+    paths = sorted((REPO / "scenarios").glob("*.yaml"))
+    assert len(paths) >= 8, "the shipped scenarios went missing"
+    for path in paths:
         sc = load_scenario(path)
-        assert sc.name
+        assert sc.name == path.stem, f"{path.name}: name {sc.name!r}"
 
 
 def test_share_topk_needs_one_ego_in_a_run() -> None:
