@@ -5,17 +5,13 @@ FuseBEVT 3 blocks, window 8, 4 heads, MLP 256) with PointPillars as in Lang et a
 (64-channel PFN, backbone 64/128/256 with 4/6/6 layers, three 128-channel upsamplings).
 "tiny": CPU preset (C = 64, F = 64: 1.56 m cells over 100 m), narrow and shallow PointPillars; a zoo
 trained before the grid was chosen (manifest "cells": 32) keeps its own grid.
-FuseBEVT keeps window = grid = 8 cells on every grid (Table A2's value): on 64 x 64 the local windows are 8 x 8
-cells (12.5 m, a junction arm and its cars) and the sparse global grid is 8 x 8 cells 8 apart (spanning the
-whole 100 m map), as on 32 x 32 it spans it with cells 4 apart. A 16-cell window would keep the local window's
-25 m of the 32 x 32 grid at 4x the attention cost (L * 256 tokens per window); the grid study
-(docs/results.md) measured window 8.
+The fusion methods' sizes per preset are declared in each method's own file (models/fusion/*.py, METHOD's
+preset_kwargs; models.declared).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
 
 
 @dataclass(frozen=True)
@@ -49,13 +45,8 @@ class ModelPreset:
     decoder_channels: tuple[int, int, int]  # Table A2 decoder, after each x2 upsampling
     camera_cells: int = 32
     seg_cells: int = 256  # final segmentation grid (Table A2: 256 x 256)
-    fusion_kwargs: dict[str, dict[str, Any]] = field(default_factory=dict)  # per fusion method
     anchor_size: tuple[float, float] = (4.5, 1.9)  # (l, w) of the detection anchors
     anchor_yaws: tuple[float, ...] = (0.0, 1.5707963267948966)
-
-    def fusion_args(self, method: str) -> dict[str, Any]:
-        """Keyword arguments (beyond `channels`) of one fusion method in this preset."""
-        return dict(self.fusion_kwargs.get(method, {}))
 
 
 PRESETS: dict[str, ModelPreset] = {
@@ -65,10 +56,6 @@ PRESETS: dict[str, ModelPreset] = {
         cells=32,
         pointpillars=PointPillarsConfig(),
         decoder_channels=(128, 64, 32),
-        fusion_kwargs={
-            "cobevt": {"heads": 4, "window": 8, "blocks": 3, "mlp_dim": 256, "max_agents": 16},
-            "v2vnet": {"iterations": 2},
-        },
     ),
     "tiny": ModelPreset(
         name="tiny",
@@ -83,10 +70,6 @@ PRESETS: dict[str, ModelPreset] = {
             shrink_channels=64,
         ),
         decoder_channels=(32, 16, 16),
-        fusion_kwargs={
-            "cobevt": {"heads": 2, "window": 8, "blocks": 1, "mlp_dim": 128, "max_agents": 16},
-            "v2vnet": {"iterations": 2},
-        },
     ),
 }
 

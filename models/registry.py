@@ -32,6 +32,7 @@ from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from models.declared import DeclaredMethod, read_declared
 from models.entry_points import read_entry_points
 from models.registration import (
     BRACKETS,
@@ -47,7 +48,10 @@ from models.registration import (
 if TYPE_CHECKING:
     from torch import nn
 
-BUILTIN_METHODS = ("none", "late", "early", "attfuse", "fcooper", "v2vnet", "disconet", "cobevt")
+# The built-in methods as their files in models/fusion/ declare them (models.declared: read, not imported).
+DECLARED: dict[str, DeclaredMethod] = {m.name: m for m in read_declared(Path(__file__).parent / "fusion",
+                                                                       "models.fusion")}
+BUILTIN_METHODS = tuple(DECLARED)  # in rank order
 
 _TABLES: dict[str, dict[str, Registration]] = {"fusion": {}, "encoder": {}}
 _CLASHES: dict[str, list[Registration]] = {}  # a name already taken -> the entry points that claim it too
@@ -61,12 +65,9 @@ def _builtin(kind: str, name: str, target: str, modality: str | None = None) -> 
 _builtin("encoder", "pointpillars", "models.pointpillars:build_pointpillars", "lidar")
 _builtin("encoder", "sinbevt", "models.sinbevt:build_sinbevt", "camera")
 _builtin("encoder", "lara", "models.lara:build_lara", "camera")
-_builtin("fusion", "none", "models.fusion.none:NoFusion")
-_builtin("fusion", "attfuse", "models.fusion.attfuse:AttFusion")
-_builtin("fusion", "fcooper", "models.fusion.fcooper:FCooperFusion")
-_builtin("fusion", "v2vnet", "models.fusion.v2vnet:V2VNetFusion")
-_builtin("fusion", "disconet", "models.fusion.disconet:DiscoNetFusion")
-_builtin("fusion", "cobevt", "models.fusion.cobevt:FuseBEVT")
+for _m in DECLARED.values():
+    if not _m.bracket:
+        _builtin("fusion", _m.name, _m.target)
 
 
 def _one_line(e: BaseException) -> str:
@@ -277,14 +278,23 @@ def plugin_weights(method: str) -> Path | None:
 
 
 def fusion_kwargs(name: str, preset: str) -> dict[str, Any]:
-    """Keyword arguments (beyond `channels`) of fusion method `name` in model preset `preset`: the preset's
-    (models.presets) for a built-in, the plugin's own `preset_kwargs[preset]` otherwise."""
+    """Keyword arguments (beyond `channels`) of fusion method `name` in model preset `preset`: its
+    `preset_kwargs[preset]`, as its file declares them (a built-in, models.declared: read without importing it) or
+    as the plugin's object carries them; ValueError for an unknown preset."""
     from models.presets import get_preset
 
+    get_preset(preset)
     reg = registration(name)
     if reg.builtin:
-        return get_preset(preset).fusion_args(name)
+        return dict(DECLARED[name].preset_kwargs.get(preset, {}))
     return _preset_kwargs(_resolve(reg), preset)
+
+
+def paper_figures(method: str) -> tuple[tuple[float, float, float] | None, float | None]:
+    """The CoBEVT paper's OPV2V figures for a built-in method (camera IoU vehicle / road / lane %, LiDAR
+    AP@0.7), each None where the paper has none or the method is no built-in."""
+    d = DECLARED.get(method)
+    return (None, None) if d is None else (d.paper_camera_iou, d.paper_lidar_ap70)
 
 
 # ---- views for existing callers: live, so that iterating them sees every plugin ------------------------------

@@ -42,6 +42,17 @@ from torch import Tensor, nn
 from models.fax import FAXSelfAttention, trunc_normal_init
 from models.resnet import record_stage_shapes
 
+# This method's entry in the registry, read without importing this file (models.registry: METHOD's keys).
+# FuseBEVT keeps window = grid = 8 cells on every grid (Table A2's value): on 64 x 64 the local windows are
+# 8 x 8 cells (12.5 m, a junction arm and its cars) and the sparse global grid is 8 x 8 cells 8 apart (spanning
+# the whole 100 m map), as on 32 x 32 it spans it with cells 4 apart. A 16-cell window would keep the local
+# window's 25 m of the 32 x 32 grid at 4x the attention cost (L * 256 tokens per window); the grid study
+# (docs/results.md) measured window 8.
+METHOD = {"name": "cobevt", "factory": "FuseBEVT", "rank": 8,
+          "preset_kwargs": {"paper": {"heads": 4, "window": 8, "blocks": 3, "mlp_dim": 256, "max_agents": 16},
+                            "tiny": {"heads": 2, "window": 8, "blocks": 1, "mlp_dim": 128, "max_agents": 16}},
+          "paper": {"camera_iou": (60.4, 63.0, 53.0), "lidar_ap70": 0.861}}
+
 
 class FusionHead(nn.Module):
     """x + Linear(LayerNorm(x)) on the agent-reduced map, channels-last in, [B, C, H, W] out; the Linear
@@ -62,6 +73,8 @@ class FusionHead(nn.Module):
 
 class FuseBEVT(nn.Module):
     """FuseBEVT: ``blocks`` FAX-SA blocks (window = grid = ``window``) over stacked agent BEV maps."""
+
+    preset_kwargs = METHOD["preset_kwargs"]  # the sizes per preset, where a plugin's class carries them
 
     def __init__(
         self,

@@ -16,6 +16,9 @@ from torch import Tensor
 from models.nms import rotated_nms
 from models.warp import transform_boxes, warp_to_ego
 
+# This method's entry in the registry, read without importing this file (models.registry: METHOD's keys).
+METHOD = {"name": "late", "bracket": True, "rank": 2, "paper": {"camera_iou": None, "lidar_ap70": 0.781}}
+
 
 def late_fuse_probabilities(
     probs: Tensor, rel_poses: Tensor, valid: Tensor, bev_size_m: float = 100.0

@@ -17,6 +17,11 @@ from torch import Tensor, nn
 
 from models.fusion.base import FusionModule, check_inputs, zero_invalid
 
+# This method's entry in the registry, read without importing this file (models.registry: METHOD's keys).
+METHOD = {"name": "v2vnet", "factory": "V2VNetFusion", "rank": 6,
+          "preset_kwargs": {"paper": {"iterations": 2}, "tiny": {"iterations": 2}},
+          "paper": {"camera_iou": (53.5, 60.2, 47.5), "lidar_ap70": 0.822}}
+
 
 class ConvGRUCell(nn.Module):
     """Convolutional GRU (3x3): h' = (1 - z) h + z tanh(W [x ; r h])."""
@@ -34,6 +39,8 @@ class ConvGRUCell(nn.Module):
 
 class V2VNetFusion(FusionModule):
     """Message CNN + masked mean aggregation + ConvGRU, `iterations` rounds; [B, L, C, H, W] -> [B, C, H, W]."""
+
+    preset_kwargs = METHOD["preset_kwargs"]  # the sizes per preset, where a plugin's class carries them
 
     def __init__(self, channels: int, iterations: int = 2) -> None:
         super().__init__(channels)

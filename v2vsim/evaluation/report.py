@@ -8,6 +8,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from models.registry import BUILTIN_METHODS, paper_figures
 from v2vsim.comm.misbehaviour import describe
 from v2vsim.comm.stats import CommStats
 from v2vsim.comm.wire_spec import message_kind
@@ -20,11 +21,6 @@ from v2vsim.perception.device import device_line
 from v2vsim.perception.precision import resolve as resolve_precision
 from v2vsim.traffic.penetration import connected_cavs
 
-# CoBEVT paper figures (DESIGN.md "Reference figures"): OPV2V camera IoU vehicle/road/lane, LiDAR AP@0.7.
-PAPER_CAMERA = {"none": (37.7, 57.8, 43.7), "fcooper": (52.5, 60.4, 46.5), "attfuse": (51.9, 60.5, 46.2),
-                "v2vnet": (53.5, 60.2, 47.5), "disconet": (52.9, 60.7, 45.8), "cobevt": (60.4, 63.0, 53.0)}
-PAPER_LIDAR_AP70 = {"late": 0.781, "early": 0.800, "attfuse": 0.815, "fcooper": 0.790, "v2vnet": 0.822,
-                    "cobevt": 0.861}
 BASELINE = "none"  # no fusion: what every other method's difference is taken against
 VS_NONE = {"iou_vehicle": "vehicle", "iou_road": "road", "iou_lane": "lane"}  # metrics.json key -> accumulator
 
@@ -387,8 +383,9 @@ def _diff_cell(d: dict | None) -> str:
 def _reference_md() -> list[str]:
     lines = ["", "## Reference (CoBEVT paper, OPV2V; real data, trained models)", "",
              "| method | camera IoU vehicle / road / lane | LiDAR AP@0.7 |", "|---|---|---|"]
-    for m in ("none", "late", "early", "attfuse", "fcooper", "v2vnet", "disconet", "cobevt"):
-        lines.append(f"| {m} | {_paper_camera(m)} | {PAPER_LIDAR_AP70.get(m, '-')} |")
+    for m in BUILTIN_METHODS:
+        ap70 = paper_figures(m)[1]
+        lines.append(f"| {m} | {_paper_camera(m)} | {'-' if ap70 is None else ap70} |")
     return lines
 
 
@@ -400,7 +397,8 @@ def _camera_beside_paper_md(doc: dict) -> list[str]:
              "the values.", "",
              "| method | this run: IoU vehicle / road / lane | paper (OPV2V): IoU vehicle / road / lane |",
              "|---|---|---|"]
-    for m in [*doc["methods"], *(m for m in PAPER_CAMERA if m not in doc["methods"])]:
+    in_paper = [m for m in BUILTIN_METHODS if paper_figures(m)[0] is not None and m not in doc["methods"]]
+    for m in [*doc["methods"], *in_paper]:
         r = doc["methods"].get(m)
         ours = " / ".join(_fmt(r[k], True) for k in ("iou_vehicle", "iou_road", "iou_lane")) if r else "-"
         lines.append(f"| {m} | {ours} | {_paper_camera(m)} |")
@@ -409,7 +407,7 @@ def _camera_beside_paper_md(doc: dict) -> list[str]:
 
 def _paper_camera(method: str) -> str:
     """The paper's camera IoU vehicle / road / lane of `method`, "-" where it has none."""
-    cam = PAPER_CAMERA.get(method)
+    cam = paper_figures(method)[0]
     return " / ".join(f"{v:.1f}" for v in cam) if cam else "-"
 
 

@@ -21,10 +21,11 @@ from models.compression import ChannelCompressor
 from models.cooperative import CooperativePerception
 from models.extrapolation import FeatureExtrapolation
 from models.presets import get_preset
-from models.registry import MODALITY, check_methods, is_plugin
+from models.registry import BUILTIN_METHODS, MODALITY, check_methods, is_intermediate, is_plugin
 from v2vsim.data.layout import DatasetError
 
-FUSION_STAGES = ("attfuse", "fcooper", "v2vnet", "cobevt", "disconet")
+# Every built-in intermediate method is a stage of its own (models.registry: as their files declare them).
+FUSION_STAGES = tuple(m for m in BUILTIN_METHODS if is_intermediate(m))
 # `compress`: the wire's channel compressors (one per ratio), trained after the cache and before every stage
 # that reads features off the wire (none, the fusion methods), which then train on the zoo's wire ratio.
 COMPRESS = "compress"
