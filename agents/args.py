@@ -7,9 +7,10 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
+from agents.timing import Startup
 from v2vsim.comm.codec import Signer
 from v2vsim.comm.identity import Identity, IdentityError, parse_identity, shared_run_key
 from v2vsim.config import ConfigError, Scenario, load_scenario
@@ -63,9 +64,13 @@ class AgentArgs:
     out: str
     identity: Identity | None = None  # comm.auth.identity per_process: this process's credentials
     run_instance: str = ""  # this start of the run (v2vsim.comm.identity.new_run_instance): bound into signatures
+    # where this process's start-up went (agents.timing): marked as it gets there, written with its timing
+    startup: Startup = field(default_factory=Startup, compare=False)
 
 
 def parse_agent_args(role: str, argv: list[str] | None = None) -> AgentArgs:
+    startup = Startup()
+    startup.mark("imports")  # main() began: the interpreter and the imports are behind
     p = argparse.ArgumentParser(prog=f"v2vsim-{role}")
     p.add_argument("scenario")
     p.add_argument("--set", dest="overrides", action="append", default=[])
@@ -110,7 +115,8 @@ def parse_agent_args(role: str, argv: list[str] | None = None) -> AgentArgs:
     split = lambda s: tuple(x for x in s.split(",") if x)  # noqa: E731
     return AgentArgs(scenario=sc, scenario_path=a.scenario, overrides=tuple(a.overrides), run_id=a.run_id,
                      listen=a.listen, peers=tuple(a.peers), cavs=split(a.cavs), egos=split(a.egos), cav=a.cav,
-                     frames=a.frames or sc.frames, out=a.out, identity=identity, run_instance=a.run_instance)
+                     frames=a.frames or sc.frames, out=a.out, identity=identity, run_instance=a.run_instance,
+                     startup=startup)
 
 
 def agent_argv(args_scenario: str, overrides: Iterable[str], run_id: str, listen: str, peers: Iterable[str],

@@ -28,7 +28,7 @@ from v2vsim.comm.control import DRIVER
 from v2vsim.comm.misbehaviour import Sent, active, tell
 from v2vsim.comm.share import feature_message
 from v2vsim.config import Scenario, neighbours_silent
-from v2vsim.config.schema import Lie
+from v2vsim.config.schema_misbehaviour import Lie
 from v2vsim.evaluation.gt import gt_boxes, visible_actor_ids
 from v2vsim.perception.aligned import build_cav_encoder, space_label
 from v2vsim.perception.build import (
@@ -77,8 +77,10 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
     if late or share < 1.0:
         name = "late" if late else "none"
         single = build_method_models(sc, encoder, (name,))[name].to(device)
+    args.startup.mark("models")
     static = static_from_bytes(bus.fetch("static", "main", START_TIMEOUT_S))
     assets = build_map_assets(static)
+    args.startup.mark("map")
     realtime = sc.transport.clock == "realtime"
     worlds = WorldQueue(world_window(sc), realtime)  # bounded: a forged far-future world is refused, not sensed
     done = threading.Event()
@@ -138,6 +140,7 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
                     with timer.stage("recording"):
                         bus.put("scan", _scan(world, actor.pose, sf, scene, args))
                 timer.frame_done()
+                args.startup.mark("first_frame")
                 continue
             with timer.stage("encoding"):
                 feats = encode_features(encoder, sf, sc, precision, modality)
@@ -170,11 +173,12 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
                 with timer.stage("recording"):
                     bus.put("scan", _scan(world, actor.pose, sf, scene, args))
             timer.frame_done()
+            args.startup.mark("first_frame")
     finally:
         if told:
             print(f"v2vsim-cav {me}: lied on purpose (misbehaviour): "
                   + ", ".join(f"{k} in {n} frames" for k, n in sorted(told.items())), file=sys.stderr, flush=True)
-        write_timing(args.out, f"cav.{me}", timer, bus.control_rejections())
+        write_timing(args.out, f"cav.{me}", timer, bus.control_rejections(), args.startup)
 
 
 def lie(sent: Sent, lies: list[Lie], world: WorldState, me: str, seen_ids: set[str], sc: Scenario,

@@ -146,6 +146,7 @@ def drive(args: AgentArgs, bus: Bus) -> int:
     word: dict | None = None  # what the driver tells the egos as it ends (final_word): computed once
     try:
         world = backend.reset()
+        args.startup.mark("sumo")  # the network loaded, the traffic warmed up and the CAVs placed
         for missing in getattr(backend, "missing_actors", lambda: ())():  # a critical actor SUMO had no room for
             print(f"v2vsim-driver: {missing}", file=sys.stderr, flush=True)
         static = static_to_bytes(backend.static)
@@ -156,6 +157,7 @@ def drive(args: AgentArgs, bus: Bus) -> int:
         bus.ready()
         expected = {f"cav.{c}" for c in args.cavs} | {f"ego.{e}" for e in egos}
         bus.wait_alive(expected, START_TIMEOUT_S)
+        args.startup.mark("agents_alive")
         bus.put("start", json.dumps({"frames": frames, "wall_t0": time.time()}).encode())
         report_progress("driver", 0, frames)
         t_start = time.monotonic()
@@ -179,6 +181,7 @@ def drive(args: AgentArgs, bus: Bus) -> int:
                 published[0] = k
                 bus.put("world", data)
             timer.frame_done()
+            args.startup.mark("first_frame")
             if closed_loop and routes_completed(world, egos):  # each ego ends on this frame's world; so does the run
                 print(f"v2vsim-driver: every driven vehicle completed its route at frame {k}", file=sys.stderr,
                       flush=True)
@@ -199,7 +202,7 @@ def drive(args: AgentArgs, bus: Bus) -> int:
         # Stopped (Ctrl-C) or failed: the egos write what they have, and take the SSM conflicts and refusals from
         # this process's bye instead of its done (agents.ego.driver_word).
         bus.leave_word(**(word if word is not None else final_word(bus, backend, closed_loop, ssm_file)))
-        write_timing(args.out, "driver", timer, bus.control_rejections())
+        write_timing(args.out, "driver", timer, bus.control_rejections(), args.startup)
     return 0
 
 

@@ -192,11 +192,13 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
     sender_check = None if not sc.defence.on else SenderCheck(
         sc, models["none"] if "none" in models else build_method_models(sc, encoder, ("none",))["none"].to(device),
         precision)
+    args.startup.mark("models")
     static_bytes = bus.fetch("static", "main", START_TIMEOUT_S)
     static = static_from_bytes(static_bytes)
     # the map rasters for the ground truth: one set for every replay of a recording in this process
     assets = (build_map_assets(static) if replay is None
               else replay.once_per_recording("map_assets", partial(build_map_assets, static)))
+    args.startup.mark("map")
     c, f = encoder.out_channels, encoder.out_cells
     compressor, ratio = build_compressor(sc, c), wire_ratio(sc)
     compressor = None if compressor is None else compressor.to(device)
@@ -396,6 +398,7 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
             frames_done += 1
             summary.neighbours.append(near)
             timer.frame_done()
+            args.startup.mark("first_frame")
             if not realtime or pilot is not None:  # realtime: no ack awaited, but a plan must reach the driver
                 with timer.stage("comm"):
                     bus.put("ack", json.dumps(ack).encode())
@@ -430,7 +433,7 @@ def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder
             went_to_end = status == "complete"
             status = final_status(status, lost, unscored(ious),
                                   None if sender_check is None else sender_check.flagged_counts())
-            summary.timing = timer.to_json() | {"fusion_threads": threads}
+            summary.timing = timer.to_json() | {"fusion_threads": threads, "startup": args.startup.to_json()}
             summary.defence = None if sender_check is None else sender_check.to_json()
             summary.frames = frames_done
             summary.sim_s = (k + 1) / sc.rate_hz

@@ -10,7 +10,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from torch import nn
 
-from v2vsim.config.schema import DefenceConfig, Scenario
+from v2vsim.config.schema import Scenario
+from v2vsim.config.schema_misbehaviour import DefenceConfig
 from v2vsim.perception.consistency import Disagreement, check_frame, decode_alone, without
 from v2vsim.perception.fuse import FusionInputs
 from v2vsim.perception.precision import Precision

@@ -56,6 +56,7 @@ def run_agent(args: AgentArgs, role: str, ident: str, body: Callable[[Bus], int]
         return 2
     bus = Bus(session, args.run_id, f"{role}.{ident}", key=run_signer(args),
               policy=ControlPolicy.for_run(args.cavs, args.egos))
+    args.startup.mark("zenoh")
     code, why = 1, "crashed"
     try:
         code, why = body(bus), "finished"

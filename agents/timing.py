@@ -1,4 +1,5 @@
-"""Where a process's frame time goes: wall milliseconds per named stage, averaged over frames.
+"""Where a process's frame time goes: wall milliseconds per named stage, averaged over frames; and where its
+start-up went (`Startup`: the instants from its launch to its first frame, `v2vsim bench startup`).
 
 Each agent keeps one `StageTimer`; the ego puts its split in metrics.json ("timing"), the driver
 and CAVs write theirs to <out>/timing/<process>.json, and `v2vsim bench run` prints them side by
@@ -8,13 +9,43 @@ side. Stages named "wait*" are time spent waiting for others, not the process's 
 from __future__ import annotations
 
 import json
+import os
 import resource
 import threading
 import time
 from collections import defaultdict
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
+from dataclasses import dataclass, field
 from pathlib import Path
+
+LAUNCHED_ENV = "V2VSIM_LAUNCHED_AT"  # time.time() when the runner started the process (v2vsim.runner)
+
+
+@dataclass
+class Startup:
+    """A process's start-up: wall-clock instants (time.time(), comparable across the run's processes) of each
+    stage reached, from `launched` (the runner's clock when it started the process) to `first_frame`. The stages
+    a process marks, in order: imports (its main() began: interpreter and imports done), zenoh (its session and
+    bus up), then its own (the driver: sumo, agents_alive; a CAV: models, map; an ego: models), then
+    first_frame."""
+
+    launched: float | None = field(default_factory=lambda: _env_float(LAUNCHED_ENV))
+    marks: dict[str, float] = field(default_factory=dict)
+
+    def mark(self, stage: str) -> None:
+        """The first time `stage` is reached (a later call for it changes nothing)."""
+        self.marks.setdefault(stage, time.time())
+
+    def to_json(self) -> dict:
+        return {"launched": self.launched, "marks": dict(self.marks)}
+
+
+def _env_float(name: str) -> float | None:
+    try:
+        return float(os.environ[name])
+    except (KeyError, ValueError):
+        return None
 
 
 class StageTimer:
@@ -97,13 +128,16 @@ def peak_rss_mib() -> float:
 
 
 def write_timing(out: str, process: str, timer: StageTimer,
-                 control_rejections: Mapping[tuple[str, str], int] | None = None) -> None:
+                 control_rejections: Mapping[tuple[str, str], int] | None = None,
+                 startup: Startup | None = None) -> None:
     """<out>/timing/<process>.json (nothing when the process has no output directory, e.g. a remote CAV); with
     the control messages this process refused ({kind: {reason: n}}, its Bus.control_rejections): the ego's are
     in metrics.json, the driver's and the CAVs' (a forged ack, a world from the future) only here."""
     if not out:
         return
     doc = timer.to_json()
+    if startup is not None:
+        doc["startup"] = startup.to_json()
     if control_rejections is not None:
         by_kind: dict[str, dict[str, int]] = {}
         for (kind, reason), n in sorted(control_rejections.items()):

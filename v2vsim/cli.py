@@ -232,8 +232,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--at", default="0", help="with --screenshots: comma-separated frames (default 0)")
     p.set_defaults(func=verbs.cmd_view)
 
-    p = sub.add_parser("bench", help="benchmarks: sensors | models | comm | run | fleet | env | placement | flood")
-    p.add_argument("what", choices=["sensors", "models", "comm", "run", "fleet", "env", "placement", "flood"])
+    p = sub.add_parser("bench", help="benchmarks: sensors | models | comm | run | startup | fleet | env | placement "
+                       "| flood")
+    p.add_argument("what", choices=["sensors", "models", "comm", "run", "startup", "fleet", "env", "placement",
+                                    "flood"])
     p.add_argument("rest", nargs=argparse.REMAINDER, help="options passed to the benchmark (see its --help)")
     p.set_defaults(func=verbs.cmd_bench)
     return parser

@@ -7,8 +7,9 @@ a CAV that dies is the ego's business (it fuses the others); a driver or ego tha
 the run with an error.
 
 Children: each runs in its own process group (a terminal's Ctrl-C reaches the runner only, which
-stops them in order) and, on Linux, gets SIGTERM when the runner dies (PR_SET_PDEATHSIG), so a
-SIGKILLed runner leaves no orphans. Their stderr comes through the runner: progress records feed
+stops them in order) and gets SIGTERM when the runner dies (PR_SET_PDEATHSIG cold; forked by the warm
+starter, the starter stops them when the runner's connection closes: v2vsim.launch), so a SIGKILLed
+runner leaves no orphans. Their stderr comes through the runner: progress records feed
 the one display (agents/progress.py), every other line is passed on as it is.
 
 Ports (peer mode): the runner picks one free loopback port per process; a child binds it seconds
@@ -20,7 +21,6 @@ restarts every process (PORT_ATTEMPTS in all). The user's own transport.listen s
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import dataclasses
 import os
 import re
@@ -31,19 +31,20 @@ import sys
 import threading
 import time
 import uuid
-from collections.abc import Callable
 from pathlib import Path
 
 from agents.args import agent_argv
 from agents.progress import ENV as PROGRESS_ENV
 from agents.progress import ProgressDisplay, parse_record
+from agents.timing import LAUNCHED_ENV
 from v2vsim.comm.identity import Identity, new_run_instance, write_identity_file
 from v2vsim.comm.identity import issue as issue_identities
 from v2vsim.comm.misbehaviour import describe
 from v2vsim.comm.transport import TransportError, free_ports, loopback_endpoint, open_session
 from v2vsim.config import ConfigError, Scenario, check_output_dir
-from v2vsim.control.fleet import merge_fleet
+from v2vsim.evaluation.fleet_report import merge_fleet
 from v2vsim.evaluation.status import cav_ranges, terminal_line
+from v2vsim.launch import Launcher, Process, launcher
 from v2vsim.perception.build import method_checkpoints, runnable_methods, zoo_for
 from v2vsim.perception.checks import check_scenario
 from v2vsim.perception.fleet import fleet_types
@@ -55,7 +56,6 @@ STOP_GRACE_S = 5.0  # after SIGINT, children get this long to write their files 
 EGO_NOTICE_S = 3.0  # after the driver dies mid-run, the egos get this long to notice it and say so themselves
 PORT_ATTEMPTS = 3  # plans of ports tried when another program takes a port the runner picked
 PORT_RACE_EXIT = 75  # EX_TEMPFAIL: an agent may exit with it when it cannot listen on its --listen port
-PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 
 
 class PortRace(Exception):
@@ -70,7 +70,7 @@ class PortRace(Exception):
 @dataclasses.dataclass
 class Child:
     name: str
-    proc: subprocess.Popen[bytes]
+    proc: Process  # subprocess.Popen, or forked by the warm starter (v2vsim.launch)
     endpoint: str = ""  # its listen endpoint ("" in client mode)
     picked: bool = False  # the runner picked `endpoint` (not the user's transport.listen)
     port_taken: bool = False  # it said its listen address is in use
@@ -129,6 +129,14 @@ def run(sc: Scenario, out: Path, frames: int | None = None, remote_cavs: tuple[s
         raise ConfigError(f"--remote-cavs {','.join(remote_cavs)}: remote agents join through a zenoh router, and "
                           f"this run is in transport.mode {sc.transport.mode}: start `v2vsim router` and add --set "
                           "transport.mode=client --set 'transport.connect=[tcp/ROUTER_HOST:7447]' (docs/cluster.md)")
+    with launcher() as launch:  # a warm starter (v2vsim.launch) imports while the scenario is checked
+        return _run(sc, out, frames, run_id, remote_cavs, cavs, egos, launch)
+
+
+def _run(sc: Scenario, out: Path, frames: int, run_id: str, remote_cavs: tuple[str, ...], cavs: list[str],
+         egos: list[str], launch: Launcher) -> int:
+    """`run` once its arguments are checked: check the scenario, start every process through `launch`, watch
+    them, stop them, and say how the run ended."""
     check_scenario(sc)
     check_output_dir(out, "--out")
     try:
@@ -195,7 +203,7 @@ def run(sc: Scenario, out: Path, frames: int | None = None, remote_cavs: tuple[s
             picked = {n for n, ep in endpoints.items() if ep and ep not in sc.transport.listen}
             children = []
             _start(children, sc, procs, endpoints, picked, overrides, run_id, cavs, egos, frames, out, display,
-                   identities, instance)
+                   identities, instance, launch)
             try:
                 code = _watch(children, display, failures)
                 break
@@ -234,13 +242,12 @@ def run(sc: Scenario, out: Path, frames: int | None = None, remote_cavs: tuple[s
 
 def _start(children: list[Child], sc: Scenario, procs: list[str], endpoints: dict[str, str], picked: set[str],
            overrides: list[str], run_id: str, cavs: list[str], egos: list[str], frames: int, out: Path,
-           display: ProgressDisplay, identities: dict[str, Identity], instance: str) -> None:
+           display: ProgressDisplay, identities: dict[str, Identity], instance: str, launcher: Launcher) -> None:
     """Start every process (appending to `children` as it goes, so that Ctrl-C stops those already up),
-    then one stderr reader per child (threads only after the forks: see `die_with_parent`). Under
+    then one stderr reader per child (threads only after the forks: see v2vsim.launch.die_with_parent). Under
     comm.auth.identity per_process each child reads its identity from its stdin pipe: not in its argv (ps
     shows that), not in a file (another user process could read it)."""
     env = dict(os.environ, PYTHONUNBUFFERED="1", **{PROGRESS_ENV: "records"})
-    setup = die_with_parent(os.getpid())
     for name in procs:
         role, ident = name.split(".", 1)
         module = {"driver": "agents.driver", "cav": "agents.cav", "ego": "agents.ego"}[role]
@@ -249,10 +256,7 @@ def _start(children: list[Child], sc: Scenario, procs: list[str], endpoints: dic
                           cav="" if role == "driver" else ident, out=str(out), identity="-" if identities else "",
                           run_instance=instance)
         # stdout joins stderr: nothing a child writes reaches the terminal except through the runner
-        proc = subprocess.Popen([sys.executable, "-m", module, *argv], env=env,
-                                stdin=subprocess.PIPE if identities else subprocess.DEVNULL,
-                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, process_group=0,
-                                preexec_fn=setup)
+        proc = launcher.start(module, argv, {**env, LAUNCHED_ENV: repr(time.time())}, stdin_pipe=bool(identities))
         if identities:
             assert proc.stdin is not None
             with proc.stdin:
@@ -261,28 +265,6 @@ def _start(children: list[Child], sc: Scenario, procs: list[str], endpoints: dic
     for c in children:
         c.reader = threading.Thread(target=_pump, args=(c, display), name=f"stderr-{c.name}", daemon=True)
         c.reader.start()
-
-
-def die_with_parent(parent: int) -> Callable[[], None] | None:
-    """What a child runs between fork and exec: ask Linux for SIGTERM when the runner dies.
-
-    PR_SET_PDEATHSIG fires when the thread that forked the child ends, so children are started
-    from the main thread only; the fork happens before any reader thread of this start exists.
-    """
-    if not sys.platform.startswith("linux"):
-        return None
-    try:
-        prctl = ctypes.CDLL(None, use_errno=True).prctl
-    except (OSError, AttributeError):
-        return None
-    sigterm = int(signal.SIGTERM)
-
-    def setup() -> None:
-        prctl(PR_SET_PDEATHSIG, sigterm, 0, 0, 0)
-        if os.getppid() != parent:  # the runner died before prctl took effect
-            os.kill(os.getpid(), sigterm)
-
-    return setup
 
 
 def _pump(child: Child, display: ProgressDisplay) -> None:

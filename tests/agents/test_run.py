@@ -23,6 +23,7 @@ import zenoh
 
 from v2vsim.comm.codec import Message, encode
 from v2vsim.comm.transport import Publisher, free_port
+from v2vsim.launch import MODE_ENV
 
 REPO = Path(__file__).resolve().parents[2]
 SCENARIO = str(REPO / "scenarios" / "intersection.yaml")
@@ -31,11 +32,14 @@ CONTRACT_METHOD_KEYS = {"iou_vehicle", "iou_vehicle_frame_mean", "iou_road", "io
 
 
 class Run:
-    """`v2vsim run` as a child process whose stderr is read line by line."""
+    """`v2vsim run` as a child process whose stderr is read line by line. Its agents start cold (V2VSIM_START):
+    these tests find an agent to kill or inspect by its command line, which a process forked by the warm starter
+    shares with the starter (tests/v2vsim/test_launch.py tests warm starts, and every other run test starts warm)."""
 
     def __init__(self, *args: str, scenario: str = SCENARIO) -> None:
         self.proc = subprocess.Popen([sys.executable, "-m", "v2vsim.cli", "run", scenario, *args],
-                                     stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, cwd=REPO)
+                                     stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, cwd=REPO,
+                                     env={**os.environ, MODE_ENV: "cold"})
         self.lines: queue.Queue[str] = queue.Queue()
         self.log: list[str] = []
         threading.Thread(target=self._read, daemon=True).start()

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from v2vsim.config.schema import Lie
+from v2vsim.config.schema_misbehaviour import Lie
 from v2vsim.evaluation.gt import rasterise_boxes
 from v2vsim.world.geometry import BevGrid, Pose, body_to_world, world_to_body, wrap_angle
 

@@ -9,7 +9,8 @@ from pathlib import Path
 
 from models.registry import METHODS
 from v2vsim.config.errors import ConfigError
-from v2vsim.config.schema import ENCODERS_BY_MODALITY, Scenario
+from v2vsim.config.schema import Scenario
+from v2vsim.config.schema_perception import ENCODERS_BY_MODALITY
 from v2vsim.config.validate import _Loader
 
 

@@ -40,7 +40,7 @@ from torch import Tensor, nn
 
 from models.heads import segmentation_probabilities
 from models.warp import warp_to_ego
-from v2vsim.config.schema import DefenceConfig
+from v2vsim.config.schema_misbehaviour import DefenceConfig
 from v2vsim.perception.device import model_device, to_host
 from v2vsim.perception.encode import heads_float
 from v2vsim.perception.fuse import FusionInputs

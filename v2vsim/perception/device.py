@@ -23,7 +23,7 @@ import torch
 from torch import Tensor, nn
 
 from v2vsim.config import ConfigError
-from v2vsim.config.schema import DEVICE_PATTERN
+from v2vsim.config.schema_perception import DEVICE_PATTERN
 
 
 def resolve_device(asked: str) -> torch.device:

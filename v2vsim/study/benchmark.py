@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import TextIO
 
 from v2vsim.config import ConfigError, check_output_dir
+from v2vsim.launch import Launcher, launcher
 from v2vsim.study.catalogue import ORACLE, SPLITS, Catalogue, Family, load_catalogue
 from v2vsim.study.leaderboard import episodes_of, write_leaderboard
 from v2vsim.study.plan import RunSpec
@@ -41,7 +42,8 @@ EGO = "cav0"  # the driven vehicle of every family (the catalogue's header)
 def driven_override(f: Family, driven: str) -> tuple[str, ...]:
     """The override that makes `driven` drive in family `f` (none for the ego alone: the scenarios' default). With
     several driven vehicles each fuses and drives on what it perceives and receives, and the run's metrics.json
-    measures the fleet (v2vsim.control.fleet): its score is their mean, a success only when every one succeeded."""
+    measures the fleet (v2vsim.evaluation.fleet_report): its score is their mean, a success only when every one
+    succeeded."""
     if driven == "ego":
         return ()
     if driven == "all":
@@ -145,15 +147,15 @@ def benchmark(args: BenchmarkArgs, start: Callable[[RunSpec], Job] | None = None
     print(f"v2vsim benchmark: profile {args.profile}, {nf} famil{'y' if nf == 1 else 'ies'}{parts}, "
           f"{total} runs ({args.split} seeds) -> {args.out}", file=stream)
     code = 0
-    for i, ((name, s), d) in enumerate(zip(plan, designs, strict=True), 1):
-        print(f"v2vsim benchmark: {'sweep' if args.stresses else 'family'} {i}/{len(plan)} {name}: {len(d.points)} "
-              f"points x {len(d.seeds)} seeds",
-              file=stream)
-        rc = sweep(s, start=start, stream=stream)
-        if rc == EXIT_INTERRUPTED:
-            print("v2vsim benchmark: interrupted; run the same command again to resume", file=stream)
-            return EXIT_INTERRUPTED
-        code = code or rc
+    with launcher() if start is None else Launcher() as launch:  # one warm starter for every family's runs
+        for i, ((name, s), d) in enumerate(zip(plan, designs, strict=True), 1):
+            print(f"v2vsim benchmark: {'sweep' if args.stresses else 'family'} {i}/{len(plan)} {name}: "
+                  f"{len(d.points)} points x {len(d.seeds)} seeds", file=stream)
+            rc = sweep(s, start=start, stream=stream, launch=launch)
+            if rc == EXIT_INTERRUPTED:
+                print("v2vsim benchmark: interrupted; run the same command again to resume", file=stream)
+                return EXIT_INTERRUPTED
+            code = code or rc
     prof = cat.profiles[args.profile]
     meta = {"catalogue": str(cat.source), "profile": args.profile, "split": args.split,
             "seeds": plan[0][1].seeds, "families": list(dict.fromkeys(n.split("/")[0] for n, _ in plan)),

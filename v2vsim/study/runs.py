@@ -16,8 +16,6 @@ import dataclasses
 import json
 import os
 import signal
-import subprocess
-import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -25,7 +23,7 @@ from pathlib import Path
 from typing import Protocol, TextIO
 
 from v2vsim.evaluation.status import COMPLETE, as_configured, finished
-from v2vsim.runner import die_with_parent
+from v2vsim.launch import Launcher
 from v2vsim.study.plan import RunSpec, same_config
 
 STOP_GRACE_S = 20.0  # after SIGINT a run stops its own processes (up to 5 s) and writes partial results
@@ -99,7 +97,7 @@ class ProcessJob:
     """`v2vsim run` in its own process group (a terminal's Ctrl-C reaches the sweep only, which passes it
     on), output to the run's log file; on Linux it gets SIGTERM if the sweep dies."""
 
-    def __init__(self, spec: RunSpec, scenario: Path) -> None:
+    def __init__(self, spec: RunSpec, scenario: Path, launch: Launcher) -> None:
         spec.out.mkdir(parents=True, exist_ok=True)
         if spec.together:
             spec.plan_file.write_text(json.dumps(spec.plan_doc(), indent=2))
@@ -107,11 +105,11 @@ class ProcessJob:
                 other.out.mkdir(parents=True, exist_ok=True)
                 (other.out / LOG).write_text(f"replayed in one process with {spec.out.parent.name}; its output: "
                                              f"{spec.out / LOG}\n")
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
-        with open(spec.out / LOG, "wb") as log:
-            self.proc = subprocess.Popen([sys.executable, *spec.argv(scenario)], stdin=subprocess.DEVNULL,
-                                         stdout=log, stderr=subprocess.STDOUT, env=env, process_group=0,
-                                         preexec_fn=die_with_parent(os.getpid()))  # a killed sweep leaves no runs
+        env = launch.child_env(dict(os.environ, PYTHONUNBUFFERED="1"))  # the run's agents: the sweep's zygote
+        argv = spec.argv(scenario)
+        assert argv[0] == "-m", argv
+        with open(spec.out / LOG, "wb") as log:  # a killed sweep leaves no runs (v2vsim.launch)
+            self.proc = launch.start(argv[1], argv[2:], env, stdout=log)
 
     def poll(self) -> int | None:
         return self.proc.poll()
@@ -129,8 +127,9 @@ class ProcessJob:
         self.proc.wait()
 
 
-def start_process(scenario: Path) -> Callable[[RunSpec], Job]:
-    return lambda spec: ProcessJob(spec, scenario)
+def start_process(scenario: Path, launch: Launcher) -> Callable[[RunSpec], Job]:
+    """Each run a process of its own, started through `launch` (warm: forked by the sweep's zygote)."""
+    return lambda spec: ProcessJob(spec, scenario, launch)
 
 
 def _tail(path: Path, n: int = TAIL_LINES) -> tuple[str, ...]:

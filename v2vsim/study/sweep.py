@@ -28,6 +28,7 @@ from typing import TextIO
 
 from v2vsim.config import ConfigError, check_output_dir, find_scenario, load_scenario
 from v2vsim.evaluation.status import COMPLETE, as_configured
+from v2vsim.launch import Launcher, launcher
 from v2vsim.study.grid import Axis, Point, base_overrides, parse_axes, parse_seeds, points, validate
 from v2vsim.study.plan import RunSpec, plan, replay_refusal
 from v2vsim.study.rows import collect, counted, methods_of
@@ -110,11 +111,15 @@ def replay_line(d: Design) -> str:
             f"same seed; replayed point(s): {', '.join(points)}")
 
 
-def sweep(args: SweepArgs, start: Callable[[RunSpec], Job] | None = None, stream: TextIO | None = None) -> int:
-    """Run the sweep and write its files; the exit code (0, 1 if a run failed, 130 when interrupted)."""
+def sweep(args: SweepArgs, start: Callable[[RunSpec], Job] | None = None, stream: TextIO | None = None,
+          launch: Launcher | None = None) -> int:
+    """Run the sweep and write its files; the exit code (0, 1 if a run failed, 130 when interrupted). Its runs
+    start through `launch` (default: a launcher of its own, v2vsim.launch: warm, every run and agent forked from
+    one zygote)."""
     d = prepare(args)
     stream = stream or sys.stderr
     client = None
+    own = None
     jobs = args.jobs or 1
     if start is None and args.engine == "dask":
         from v2vsim.study.cluster import DaskJob, connect, worker_threads
@@ -129,13 +134,18 @@ def sweep(args: SweepArgs, start: Callable[[RunSpec], Job] | None = None, stream
     print(replay_line(d), file=stream)
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler)  # `kill` stops it like Ctrl-C
     try:
-        results, interrupted = execute(d.specs, jobs, start or start_process(d.scenario),
-                                       Progress(len(d.specs), jobs, stream))
+        if start is None:
+            if launch is None:
+                launch = own = launcher()
+            start = start_process(d.scenario, launch)
+        results, interrupted = execute(d.specs, jobs, start, Progress(len(d.specs), jobs, stream))
         paths = write_outputs(args, d, results, interrupted)
     finally:
         signal.signal(signal.SIGTERM, previous)
         if client is not None:
             client.close()
+        if own is not None:
+            own.close()
     failed = [r for r in results if not r.ok]
     degraded = [r for r in results if r.ok and r.status != COMPLETE]
     flagged = sum(as_configured(r.status) for r in degraded)  # degraded only by the misbehaviour check's flags

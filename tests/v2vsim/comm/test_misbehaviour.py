@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from v2vsim.comm.misbehaviour import ADDED_SCORE, Sent, active, apply, claimed_pose, tell
-from v2vsim.config.schema import Lie
+from v2vsim.config.schema_misbehaviour import Lie
 
 SIZE = 32.0
 A = np.array([8.0, 0.0, 4.5, 2.2, 0.0])

@@ -10,7 +10,9 @@ from v2vsim.comm.stats import CommStats
 from v2vsim.config import scenario_from_dict
 from v2vsim.evaluation.block_bootstrap import block_length, first_uncorrelated_lag, paired_difference
 from v2vsim.evaluation.metrics import MethodScore, paired_counts
-from v2vsim.evaluation.report import RunSummary, metrics_json, report_md
+from v2vsim.evaluation.metrics_doc import metrics_json
+from v2vsim.evaluation.report_md import report_md
+from v2vsim.evaluation.run_summary import RunSummary
 
 UNION = 1000  # cells in each frame's union: IoU = intersection / 1000
 

@@ -11,7 +11,9 @@ import pytest
 from v2vsim.comm.stats import CommStats
 from v2vsim.config import ConfigError, scenario_from_dict
 from v2vsim.evaluation.metrics import ApAccumulator, MethodScore, cavs_in_range, neighbour_shares
-from v2vsim.evaluation.report import RunSummary, metrics_json, report_md
+from v2vsim.evaluation.metrics_doc import metrics_json
+from v2vsim.evaluation.report_md import report_md
+from v2vsim.evaluation.run_summary import RunSummary
 from v2vsim.world.geometry import Pose
 from v2vsim.world.state import Actor, StaticMap, WorldState
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from v2vsim.config.schema import DefenceConfig
+from v2vsim.config.schema_misbehaviour import DefenceConfig
 from v2vsim.perception.consistency import Disagreement, check_frame, disagreements, judge, without
 from v2vsim.perception.fuse import FusionInputs
 

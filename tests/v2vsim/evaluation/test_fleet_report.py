@@ -1,5 +1,5 @@
-"""The fleet's driving (v2vsim/control/fleet.py) on hand-made ego blocks: every driven vehicle in the run's own
-metrics.json and report, fleet totals, and a contact between two driven vehicles counted once."""
+"""The fleet's report (v2vsim/evaluation/fleet_report.py) on hand-made ego blocks: every driven vehicle in the
+run's own metrics.json and report, fleet totals, and a contact between two driven vehicles counted once."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ from pathlib import Path
 
 import pytest
 
-from v2vsim.control.fleet import fleet_counts, merge_driving, merge_fleet
 from v2vsim.control.measures import DrivenFrame, driving_block, vehicle_measures
 from v2vsim.control.score import score_block, total_score
-from v2vsim.evaluation.report import driving_md
+from v2vsim.evaluation.fleet_report import fleet_counts, merge_driving, merge_fleet
+from v2vsim.evaluation.report_md import driving_md
 
 DT = 0.1
 

@@ -1,4 +1,4 @@
-"""The fleet's driving, when several CAVs drive (`cavs.ego: all` or a list): each ego writes only its own vehicle's
+"""The fleet's report, when several CAVs drive (`cavs.ego: all` or a list): each ego writes only its own vehicle's
 `driving` block (ego_<id>/metrics.json); once every ego has finished, the runner merges them into the run's own
 metrics.json and report.md, so that the run's outputs measure the fleet (docs/scenario.md "control").
 
@@ -24,7 +24,7 @@ from typing import Any
 from v2vsim.control.critical import critical_total
 from v2vsim.control.measures import driving_block
 from v2vsim.control.score import total_score
-from v2vsim.evaluation.report import driving_md
+from v2vsim.evaluation.report_md import driving_md
 from v2vsim.run_outcome import ego_folder
 
 
@@ -61,10 +61,12 @@ def merge_driving(blocks: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     return merged
 
 
-def fleet_md(fleet: Mapping[str, int]) -> list[str]:
+def fleet_driving_md(fleet: Mapping[str, int]) -> list[str]:
+    """report.md's line on `total.fleet`, below the merged driving section."""
     return ["", f"Fleet: {fleet['driven']} driven vehicles; {fleet['collisions']} distinct contacts "
             f"({fleet['collisions_between_driven']} between driven vehicles, {fleet['collisions_with_others']} with "
-            f"others), {fleet['vehicles_in_collision']} driven vehicles in a collision (v2vsim/control/fleet.py)."]
+            f"others), {fleet['vehicles_in_collision']} driven vehicles in a collision "
+            "(v2vsim/evaluation/fleet_report.py)."]
 
 
 def merge_fleet(out: Path, egos: list[str]) -> bool:
@@ -88,6 +90,7 @@ def merge_fleet(out: Path, egos: list[str]) -> bool:
     report = out / "report.md"
     if report.is_file():
         text = report.read_text()
-        before, after = "\n".join(driving_md(own)), "\n".join(driving_md(merged) + fleet_md(merged["total"]["fleet"]))
+        before = "\n".join(driving_md(own))
+        after = "\n".join(driving_md(merged) + fleet_driving_md(merged["total"]["fleet"]))
         report.write_text(text.replace(before, after) if before in text else text + "\n" + after + "\n")
     return True
