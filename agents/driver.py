@@ -200,7 +200,7 @@ def drive(args: AgentArgs, bus: Bus) -> int:
         bus.put("done", json.dumps({"frames": last + 1, **word}).encode())
     finally:
         # Stopped (Ctrl-C) or failed: the egos write what they have, and take the SSM conflicts and refusals from
-        # this process's bye instead of its done (agents.ego.driver_word).
+        # this process's bye instead of its done (agents.ego_finish.driver_word).
         bus.leave_word(**(word if word is not None else final_word(bus, backend, closed_loop, ssm_file)))
         write_timing(args.out, "driver", timer, bus.control_rejections(), args.startup)
     return 0
