@@ -11,8 +11,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from agents.timing import Startup
-from v2vsim.comm.codec import Signer
 from v2vsim.comm.identity import Identity, IdentityError, parse_identity, shared_run_key
+from v2vsim.comm.signing import Signer
 from v2vsim.config import ConfigError, Scenario, load_scenario
 
 

@@ -37,7 +37,7 @@ from typing import Any
 
 import zenoh
 
-from v2vsim.comm.codec import RejectedMessage, Signer
+from v2vsim.comm.codec import RejectedMessage
 from v2vsim.comm.control import (
     CONTROL_KINDS,
     DRIVER,
@@ -50,6 +50,7 @@ from v2vsim.comm.control import (
     process_id,
     seal,
 )
+from v2vsim.comm.signing import Signer
 from v2vsim.comm.transport import message_key, parse_key
 
 START_TIMEOUT_S = 300.0  # agents import torch and build their models before they are ready

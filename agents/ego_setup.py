@@ -22,8 +22,8 @@ from agents.ego_mailbox import Mailbox, Window, notify, put_world, set_done
 from agents.ego_replay import ReplayBus
 from agents.ego_scoring import AfterFusion
 from agents.timing import StageTimer
-from v2vsim.comm.codec import Signer
 from v2vsim.comm.inbox import Inbox
+from v2vsim.comm.signing import Signer
 from v2vsim.comm.stats import CommStats
 from v2vsim.comm.wire_spec import EgoDecoder, ego_wire_spec
 from v2vsim.config import Scenario, neighbours_silent

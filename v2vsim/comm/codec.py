@@ -42,12 +42,15 @@ the payload is inflated or copied, so a 1 MB zlib bomb declaring 67 M points cos
 Under a spec an integer extra is accepted only as the index extra "cells" of a kind whose
 KindSpec sets `cells` (the grid size); its values are checked after decoding ('bad_indices'),
 since a receiver scatters the payload with them.
+
+This module holds the encoder and the decoder (`encode`, `check_arrival`, `decode`) and re-exports the
+message model they speak (v2vsim.comm.message). The tag's signing and the checks every receiver runs before
+parsing (magic, version, flags, signature) are v2vsim.comm.signing; the shared parsing primitives are
+v2vsim.comm.wire_io.
 """
 
 from __future__ import annotations
 
-import hashlib
-import hmac
 import math
 import struct
 import zlib
@@ -55,14 +58,12 @@ from collections.abc import Collection, Mapping
 
 import numpy as np
 
-from v2vsim.comm.identity import Identity, data_signer
 from v2vsim.comm.message import (
     _COMPRESSION_NAMES,
     _DTYPE_NAMES,
     _FIXED,
     _INDEX_DTYPES,
     _KIND_NAMES,
-    _KNOWN_FLAGS,
     CELLS,
     COMPRESSION_CODES,
     DTYPE_CODES,
@@ -88,6 +89,8 @@ from v2vsim.comm.message import (
     ShapeSpec,
     encoded_size_hint,
 )
+from v2vsim.comm.signing import Signer, authenticated_header, check_signer, signature, signature_flag
+from v2vsim.comm.wire_io import U8, U16, U32, all_finite, utf8
 
 __all__ = [
     "CELLS", "COMPRESSION_CODES", "DTYPE_CODES", "FLAG_IDENTITY", "FLAG_SIGNED", "FLAG_SPACE", "KIND_CODES",
@@ -96,34 +99,6 @@ __all__ = [
     "Dim", "Kind", "KindSpec", "Message", "RejectedMessage", "ShapeSpec", "Signer", "check_arrival", "decode",
     "encode", "encoded_size_hint",
 ]
-
-_U8 = struct.Struct("<B")
-_U16 = struct.Struct("<H")
-_U32 = struct.Struct("<I")
-
-
-def _all_finite(a: np.ndarray) -> bool:
-    """np.isfinite(a).all(), but on float16 via the exponent bits (numpy's float16 ufuncs are slow).
-
-    Integer arrays are finite by construction."""
-    if a.size == 0 or a.dtype.kind != "f":
-        return True
-    if a.dtype == np.float16:
-        return int((a.view(np.uint16) & 0x7FFF).max()) < 0x7C00
-    return bool(np.isfinite(a).all())
-
-
-def _utf8(s: str, what: str, limit: int) -> bytes:
-    b = s.encode("utf-8")
-    if len(b) > limit:
-        raise ValueError(f"{what} longer than {limit} bytes: {s[:40]!r}...")
-    return b
-
-
-Signer = bytes | Identity
-"""What signs and checks messages under comm.auth: the run's shared key (hmac-sha256: membership), or a
-process's Identity (Ed25519: who; v2vsim.comm.identity)."""
-
 
 def encode(msg: Message, key: Signer | None = None, *, check_finite: bool = True) -> bytes:
     """Serialise `msg` (casting the payload to its kind's wire dtype); sign it when `key` is given (an
@@ -159,64 +134,33 @@ def encode(msg: Message, key: Signer | None = None, *, check_finite: bool = True
 
     parts: list[bytes | memoryview] = []
     x, y, z, yaw = (float(v) for v in msg.sender_pose)
-    flags = 0 if key is None else FLAG_IDENTITY if isinstance(key, Identity) else FLAG_SIGNED
+    flags = signature_flag(key)
     if msg.space:
         flags |= FLAG_SPACE
-    if isinstance(key, Identity) and key.name != data_signer(msg.sender_id):
-        raise ValueError(f"{key.name} cannot sign a message of sender {msg.sender_id!r}")
+    check_signer(key, msg.sender_id)
     parts.append(_FIXED.pack(MAGIC, VERSION, KIND_CODES[msg.kind], flags, COMPRESSION_CODES[msg.compression],
                              int(msg.channel_compression), len(arrays), int(msg.frame),
                              float(msg.capture_time), x, y, z, yaw))
     texts = [(msg.run_id, "run id"), (msg.sender_id, "sender id")] + ([(msg.space, "space")] if msg.space else [])
     for text, what in texts:
-        b = _utf8(text, what, 0xFFFF)
-        parts += [_U16.pack(len(b)), b]
+        b = utf8(text, what, 0xFFFF)
+        parts += [U16.pack(len(b)), b]
     blobs: list[memoryview] = []
     for name, a in arrays:
         if a.ndim > MAX_NDIM or any(d > 0xFFFFFFFF for d in a.shape):
             raise ValueError(f"array {name or 'payload'} shape {a.shape} not representable")
-        if check_finite and not _all_finite(a):
+        if check_finite and not all_finite(a):
             raise ValueError(f"array {name or 'payload'} has NaN/Inf values (after the cast to {a.dtype})")
-        nb = _utf8(name, "extra name", 0xFF)
-        parts += [_U8.pack(len(nb)), nb, struct.pack(f"<BB{a.ndim}I", DTYPE_CODES[a.dtype.name], a.ndim, *a.shape)]
+        nb = utf8(name, "extra name", 0xFF)
+        parts += [U8.pack(len(nb)), nb, struct.pack(f"<BB{a.ndim}I", DTYPE_CODES[a.dtype.name], a.ndim, *a.shape)]
         le = np.ascontiguousarray(a.astype(a.dtype.newbyteorder("<"), copy=False))  # no copy on x86/arm
         blobs.append(memoryview(le.reshape(-1).view(np.uint8)))
     body: bytes | memoryview = blobs[0] if len(blobs) == 1 else b"".join(blobs)
     if msg.compression == "zlib":
         body = zlib.compress(body, 1)  # level 1: float payloads gain little from harder work
-    parts += [_U32.pack(len(body)), body]
+    parts += [U32.pack(len(body)), body]
     data = b"".join(parts)
-    if isinstance(key, Identity):
-        data += key.sign(data)
-    elif key is not None:
-        data += hmac.new(key, data, hashlib.sha256).digest()
-    return data
-
-
-class _Reader:
-    """Bounds-checked cursor: running off the end is 'truncated', never an IndexError."""
-
-    def __init__(self, data: bytes | memoryview, end: int) -> None:
-        self.data = data
-        self.pos = 0
-        self.end = end
-
-    def take(self, n: int) -> memoryview:
-        if n < 0 or self.pos + n > self.end:
-            raise RejectedMessage("truncated", f"need {n} bytes at offset {self.pos}, have {self.end - self.pos}")
-        out = memoryview(self.data)[self.pos:self.pos + n]
-        self.pos += n
-        return out
-
-    def unpack(self, st: struct.Struct) -> tuple:
-        return st.unpack(self.take(st.size))
-
-    def text(self, what: str) -> str:
-        (n,) = self.unpack(_U16)
-        try:
-            return bytes(self.take(n)).decode("utf-8")
-        except UnicodeDecodeError:
-            raise RejectedMessage("bad_header", f"{what} is not utf-8") from None
+    return data if key is None else data + signature(data, key)
 
 
 def _shape_ok(shape: tuple[int, ...], spec: ShapeSpec) -> bool:
@@ -231,7 +175,7 @@ def check_arrival(data: bytes, *, key: Signer | None = None, run_id: str | None 
     is given (so a forged message never takes a receiver's buffer), the run and the sender. The
     payload is not looked at: `decode` does the rest when the message is fused."""
     try:
-        frame, _kind, _flags, _end, r = _authenticated_header(data, key)
+        frame, _kind, _flags, _end, r = authenticated_header(data, key)
         msg_run, sender = r.text("run id"), r.text("sender id")
     except RejectedMessage:
         raise
@@ -242,47 +186,6 @@ def check_arrival(data: bytes, *, key: Signer | None = None, run_id: str | None 
     if known_senders is not None and sender not in known_senders:
         raise RejectedMessage("unknown_sender", repr(sender))
     return frame, sender
-
-
-def _authenticated_header(data: bytes, key: Signer | None) -> tuple[int, int, int, int, _Reader]:
-    """(frame, kind code, flags, end of the signed bytes, a reader after the fixed header): the checks
-    every receiver runs first, the signature included, so unauthenticated bytes go no further."""
-    if len(data) < 5:
-        raise RejectedMessage("truncated", f"{len(data)} bytes")
-    if data[:4] != MAGIC:
-        raise RejectedMessage("bad_magic", repr(data[:4]))
-    if data[4] != VERSION:
-        raise RejectedMessage("bad_version", f"version {data[4]}, this build reads {VERSION}")
-    if len(data) < _FIXED.size:
-        raise RejectedMessage("truncated", f"{len(data)} bytes, the fixed header alone is {_FIXED.size}")
-    flags, frame = data[6], _U32.unpack_from(data, 12)[0]
-    if flags & ~_KNOWN_FLAGS:
-        raise RejectedMessage("bad_header", f"unknown flags 0x{flags:02x}")
-    if flags & FLAG_SIGNED and flags & FLAG_IDENTITY:
-        raise RejectedMessage("bad_header", "two signatures")
-    tag_len = TAG_LEN if flags & FLAG_SIGNED else SIG_LEN if flags & FLAG_IDENTITY else 0
-    end = len(data) - tag_len
-    if end < _FIXED.size:
-        raise RejectedMessage("truncated", "no room for the signature")
-    if isinstance(key, Identity):
-        if not flags & FLAG_IDENTITY:
-            raise RejectedMessage("unsigned", "comm.auth.identity is per_process and the message carries no "
-                                              "process signature")
-        r = _Reader(data, end)
-        r.pos = _FIXED.size
-        r.text("run id")
-        signer = data_signer(r.text("sender id"))
-        if not key.verify(signer, memoryview(data)[:end], memoryview(data)[end:]):
-            raise RejectedMessage("bad_signature", f"not signed by {signer}")
-    elif key is not None:
-        if not flags & FLAG_SIGNED:
-            raise RejectedMessage("unsigned", "comm.auth is on and the message carries no signature")
-        tag = hmac.new(key, memoryview(data)[:end], hashlib.sha256).digest()
-        if not hmac.compare_digest(tag, data[end:]):
-            raise RejectedMessage("bad_signature")
-    r = _Reader(data, end)
-    r.pos = _FIXED.size
-    return frame, data[5], flags, end, r
 
 
 def decode(data: bytes | bytearray | memoryview, *, key: Signer | None = None,
@@ -322,7 +225,7 @@ def _decode(data: bytes | bytearray | memoryview, key: Signer | None, known_send
             raise RejectedMessage("size_mismatch", f"{len(data)} bytes, the longest acceptable is {limit}")
     data = bytes(data) if not isinstance(data, bytes) else data
     # Authenticate before parsing further, so unauthenticated bytes never reach zlib or numpy.
-    _, _, _, end, r = _authenticated_header(data, key)
+    _, _, _, end, r = authenticated_header(data, key)
     (_, _, kind_code, flags, comp_code, ch_comp, n_arrays, frame, capture_time,
      x, y, z, yaw) = _FIXED.unpack_from(data)
     if kind_code not in _KIND_NAMES:
@@ -367,7 +270,7 @@ def _decode(data: bytes | bytearray | memoryview, key: Signer | None, known_send
     specs: list[tuple[str, np.dtype, tuple[int, ...]]] = []
     total = 0
     for i in range(n_arrays):
-        (nlen,) = r.unpack(_U8)
+        (nlen,) = r.unpack(U8)
         try:
             name = bytes(r.take(nlen)).decode("utf-8")
         except UnicodeDecodeError:
@@ -411,7 +314,7 @@ def _decode(data: bytes | bytearray | memoryview, key: Signer | None, known_send
         if missing:
             raise RejectedMessage("missing_extra", f"{kind} without {', '.join(sorted(missing))}")
 
-    (body_len,) = r.unpack(_U32)
+    (body_len,) = r.unpack(U32)
     body = r.take(body_len)
     if r.pos != end:
         raise RejectedMessage("size_mismatch", f"{end - r.pos} trailing bytes")
@@ -435,7 +338,7 @@ def _decode(data: bytes | bytearray | memoryview, key: Signer | None, known_send
         a = np.frombuffer(raw, dtype=dtype, count=math.prod(shape), offset=off).reshape(shape)
         a = a.astype(dtype.newbyteorder("="), copy=True)  # own, writable, native-order memory
         off += n
-        if not _all_finite(a):
+        if not all_finite(a):
             raise RejectedMessage("non_finite", f"array {name or 'payload'}")
         arrays.append((name, a))
     if kspec is not None and kspec.cells is not None:

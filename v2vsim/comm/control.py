@@ -32,8 +32,9 @@ import threading
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
-from v2vsim.comm.codec import SIG_LEN, TAG_LEN, RejectedMessage, Signer
+from v2vsim.comm.codec import SIG_LEN, TAG_LEN, RejectedMessage
 from v2vsim.comm.identity import Identity
+from v2vsim.comm.signing import Signer
 from v2vsim.world.serialize import MAX_STATIC_BYTES, MAX_WORLD_BYTES
 
 CONTROL_KINDS = frozenset({"world", "done", "ack", "start", "static", "vis", "scan", "bye", "hello"})
