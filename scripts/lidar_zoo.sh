@@ -3,14 +3,17 @@
 # stage into ZOO_DIR (default models/weights/). Each step resumes where it stopped if re-run.
 #   scripts/lidar_zoo.sh [DATA_DIR] [WORK_DIR] [ZOO_DIR]     (WIRE_RATIOS="1 16 32 64": CoBEVT on the other wires)
 # The grid is the tiny preset's (64 x 64, 1.56 m cells); ZOO_DIR must not hold a zoo of another grid.
-# BF16=0 trains every stage in float32 (default: bfloat16 autocast for `none` and the fusion methods but CoBEVT).
+# BF16=0 trains every stage in float32 (default where the CPU has native bfloat16: bfloat16 autocast for `none` and
+# the fusion methods but CoBEVT; float32 elsewhere).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DATA=${1:-data/lidar}
 WORK=${2:-runs/train}
 ZOO=${3:-models/weights}
 V=${V2VSIM:-v2vsim}
-BF16=${BF16:-1}
+# bfloat16 only where the CPU computes it natively (AMX or AVX-512 BF16): emulated on an AVX2-only CPU it ran a fusion
+# stage ~100x slower than float32
+BF16=${BF16:-$(python -c "from v2vsim.perception.precision import native_bf16; print(int(native_bf16()))")}
 # SKIP_DATA=1: DATA is recorded already (scripts/towns_zoo.sh records the generated-town dataset first)
 [ "${SKIP_DATA:-0}" = 1 ] || scripts/zoo_data.sh "$DATA" 20 --jobs 2
 # single (encoder + heads) -> cache (its frozen features) -> compress (the wire's compressors, ratio 8 = the

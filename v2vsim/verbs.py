@@ -182,6 +182,13 @@ def cmd_train(args: argparse.Namespace) -> int:
         if any(r < 2 for r in extra["ratios"]):
             print(f"v2vsim train: --ratios {args.ratios!r}: every ratio must be >= 2", file=sys.stderr)
             return 2
+    if args.bf16 and args.device == "cpu":
+        from v2vsim.perception.precision import native_bf16
+
+        if not native_bf16():  # autocast then emulates bfloat16: measured ~100x slower than float32 (AVX2 only)
+            print("v2vsim train: warning: --bf16 on a CPU without AMX or AVX-512 BF16: bfloat16 is emulated there, "
+                  "far slower than float32 (a fusion stage ran ~40 s a step against ~0.5 s); leave --bf16 out",
+                  file=sys.stderr)
     targs = TrainArgs(data=Path(args.data), stage=args.stage, out=Path(args.out), work=Path(args.work),
                       encoder=args.encoder, preset=args.preset, cells=args.cells, bf16=args.bf16,
                       wire_ratio=args.wire_ratio, image_backbone=args.image_backbone, **extra,
