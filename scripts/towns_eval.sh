@@ -4,7 +4,7 @@
 # (control off), and held-out generated towns (seeds 3000..). Every method, 150 frames, the default channel; one
 # `v2vsim sweep` per scenario and zoo, so each method's difference to `none` has its paired interval over seeds
 # (and frames) in OUT/<old|new>/<scenario>/sweep.md. Resumable. ONLY=old or ONLY=new runs one zoo's half (the old
-# zoo's can run while the new one trains). Then the tables (scripts/towns_table.py).
+# zoo's can run while the new one trains). SCENARIOS overrides the scenario list. Then the tables (scripts/towns_table.py).
 #   scripts/towns_eval.sh OUT_DIR OLD_ZOO NEW_ZOO [SEEDS] [N_TOWNS]     (SEEDS default 0-1, N_TOWNS 10)
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -14,7 +14,8 @@ NEW=$(realpath "$3")
 SEEDS=${4:-0-1}
 NT=${5:-10}
 V=${V2VSIM:-v2vsim}
-ALL="[none, late, early, attfuse, fcooper, v2vnet, disconet, cobevt]"
+# METHODS overrides the list (a zoo still missing a stage cannot run it: the run refuses an untrained method)
+ALL=${METHODS:-"[none, late, early, attfuse, fcooper, v2vnet, disconet, cobevt]"}
 sweep() {  # sweep SCENARIO NAME SEEDS: one sweep per zoo (a sweep skips the runs it finished before)
   for label in ${ONLY:-old new}; do
     zoo=$OLD; [ "$label" = new ] && zoo=$NEW
@@ -22,8 +23,8 @@ sweep() {  # sweep SCENARIO NAME SEEDS: one sweep per zoo (a sweep skips the run
       --set "perception.methods=$ALL" --set output.rerun=false --out "$OUT/$label/$2"
   done
 }
-for sc in intersection t_junction left_turn_truck crossroads_occluded ramp_merge red_light_runner \
-          blind_corner_stop t_junction_occluded; do
+for sc in ${SCENARIOS:-intersection t_junction left_turn_truck crossroads_occluded ramp_merge red_light_runner \
+          blind_corner_stop t_junction_occluded}; do
   sweep scenarios/$sc.yaml $sc "$SEEDS"
 done
 [ -d "$OUT/towns/town_$((3000 + NT - 1))" ] || $V towns --seeds 3000-$((3000 + NT - 1)) --out "$OUT/towns" --no-check
