@@ -98,6 +98,19 @@ def main(out: Path, old: str, new: str) -> None:
               f"{pick('old', 'cobevt', 'iou_vehicle')} -> {pick('new', 'cobevt', 'iou_vehicle')} | "
               f"{pick('old', 'cobevt', 'ap70')} -> {pick('new', 'cobevt', 'ap70')} |")
 
+    print("\n### Per benchmark family: each intermediate method's per-frame vehicle IoU - none, old -> new "
+          "(95 % paired interval over its runs; * excludes 0)\n")
+    inter = [m for m in METHODS if m not in ("none", "late", "early")]
+    print("| scenario | " + " | ".join(inter) + " |")
+    print("|---|" + "---|" * len(inter))
+    for sc in FAMILIES:
+        mine = [r for r in rows if r["scenario_dir"] == sc]
+        if not mine:
+            continue
+        cells = [f"{_diff([r for r in mine if r['zoo'] == 'old'], m, f'{sc}|old|{m}')} -> "
+                 f"{_diff([r for r in mine if r['zoo'] == 'new'], m, f'{sc}|new|{m}')}" for m in inter]
+        print(f"| {sc} | " + " | ".join(cells) + " |")
+
 
 if __name__ == "__main__":
     main(Path(sys.argv[1]), sys.argv[2], sys.argv[3])
