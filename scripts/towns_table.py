@@ -32,12 +32,14 @@ def group_of(scenario: str) -> str:
 
 
 def load(out: Path, zoos: dict[str, str]) -> list[dict]:
-    rows = []
+    rows, seen = [], set()
     for sj in sorted(out.glob("*/*/sweep.json")):  # OUT/<old|new>/<scenario>/sweep.json
         doc = json.loads(sj.read_text())
         for r in doc["rows"]:
             zoo = zoos.get(str(r.get("perception.weights")))
-            if zoo is not None and r.get("status", "complete") == "complete":
+            key = (zoo, sj.parent.name, r.get("seed"), r.get("method"))
+            if zoo is not None and r.get("status", "complete") == "complete" and key not in seen:
+                seen.add(key)  # a method added later (OUT/new_v2vnet/...) re-runs `none`: count each run once
                 rows.append({**r, "zoo": zoo, "scenario_dir": sj.parent.name})
     return rows
 
