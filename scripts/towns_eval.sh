@@ -14,13 +14,15 @@ NEW=$(realpath "$3")
 SEEDS=${4:-0-1}
 NT=${5:-10}
 V=${V2VSIM:-v2vsim}
-# METHODS overrides the list (a zoo still missing a stage cannot run it: the run refuses an untrained method)
+# METHODS overrides the list (a zoo still missing a stage cannot run it: the run refuses an untrained method); a
+# method added later runs beside the first sweeps with SUFFIX (OUT/<old|new>SUFFIX/...; towns_table.py counts
+# the repeated `none` runs once)
 ALL=${METHODS:-"[none, late, early, attfuse, fcooper, v2vnet, disconet, cobevt]"}
 sweep() {  # sweep SCENARIO NAME SEEDS: one sweep per zoo (a sweep skips the runs it finished before)
   for label in ${ONLY:-old new}; do
     zoo=$OLD; [ "$label" = new ] && zoo=$NEW
     $V sweep "$1" --grid perception.weights="$zoo" --seeds "$3" --frames 150 --set control=null \
-      --set "perception.methods=$ALL" --set output.rerun=false --out "$OUT/$label/$2"
+      --set "perception.methods=$ALL" --set output.rerun=false --out "$OUT/$label${SUFFIX:-}/$2"
   done
 }
 for sc in ${SCENARIOS:-intersection t_junction left_turn_truck crossroads_occluded ramp_merge red_light_runner \

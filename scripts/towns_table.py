@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from models.registry import is_intermediate
 from v2vsim.study.stats import interval
 
 METHODS = ("none", "late", "early", "attfuse", "fcooper", "v2vnet", "disconet", "cobevt")
@@ -33,13 +34,13 @@ def group_of(scenario: str) -> str:
 
 def load(out: Path, zoos: dict[str, str]) -> list[dict]:
     rows, seen = [], set()
-    for sj in sorted(out.glob("*/*/sweep.json")):  # OUT/<old|new>/<scenario>/sweep.json
+    for sj in sorted(out.glob("*/*/sweep.json")):  # OUT/<old|new>[SUFFIX]/<scenario>/sweep.json
         doc = json.loads(sj.read_text())
         for r in doc["rows"]:
             zoo = zoos.get(str(r.get("perception.weights")))
             key = (zoo, sj.parent.name, r.get("seed"), r.get("method"))
             if zoo is not None and r.get("status", "complete") == "complete" and key not in seen:
-                seen.add(key)  # a method added later (OUT/new_v2vnet/...) re-runs `none`: count each run once
+                seen.add(key)  # a method added later (towns_eval.sh SUFFIX=_v2vnet) re-runs `none`: count each run once
                 rows.append({**r, "zoo": zoo, "scenario_dir": sj.parent.name})
     return rows
 
@@ -102,7 +103,7 @@ def main(out: Path, old: str, new: str) -> None:
 
     print("\n### Per benchmark family: each intermediate method's per-frame vehicle IoU - none, old -> new "
           "(95 % paired interval over its runs; * excludes 0)\n")
-    inter = [m for m in METHODS if m not in ("none", "late", "early")]
+    inter = [m for m in METHODS if is_intermediate(m)]
     print("| scenario | " + " | ".join(inter) + " |")
     print("|---|" + "---|" * len(inter))
     for sc in FAMILIES:
