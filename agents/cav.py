@@ -31,17 +31,12 @@ from v2vsim.config import Scenario, neighbours_silent
 from v2vsim.config.schema_misbehaviour import Lie
 from v2vsim.evaluation.gt import gt_boxes, visible_actor_ids
 from v2vsim.perception.aligned import build_cav_encoder, space_label
-from v2vsim.perception.build import (
-    build_compressor,
-    build_method_models,
-    compress,
-    wire_ratio,
-)
+from v2vsim.perception.build import build_compressor, build_method_models, compress
 from v2vsim.perception.device import prepare as prepare_device
 from v2vsim.perception.device import resolve_device
 from v2vsim.perception.encode import body_frame_points, late_outputs, pooled_confidence
 from v2vsim.perception.encode import encode as encode_features
-from v2vsim.perception.fleet import agent_type
+from v2vsim.perception.plan import plan_models
 from v2vsim.perception.precision import resolve as resolve_precision
 from v2vsim.recording.scan import encode_scan, world_points
 from v2vsim.sensors.camera import render_cameras
@@ -61,11 +56,12 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
     # the runner checked the device before starting this process; a remote agent's host may differ (checked again)
     device = resolve_device(sc.perception.device)
     prepare_device(device)
-    encoder = build_cav_encoder(sc, me).to(device)  # the models move once; each inference moves its inputs
-    modality = agent_type(sc, me).modality  # a mixed fleet's CAV: its own sensor (cavs.fleet)
-    space = space_label(sc, me)  # what its feature messages name as their origin ("" outside a mixed fleet)
+    plan = plan_models(sc)  # the scenario's models, resolved once: every build below takes it
+    encoder = build_cav_encoder(plan, me).to(device)  # the models move once; each inference moves its inputs
+    modality = plan.agent_type(me).modality  # a mixed fleet's CAV: its own sensor (cavs.fleet)
+    space = space_label(plan, me)  # what its feature messages name as their origin ("" outside a mixed fleet)
     precision = resolve_precision(sc.perception.precision)
-    compressor, ratio = build_compressor(sc, encoder.out_channels), wire_ratio(sc)
+    compressor, ratio = build_compressor(plan, encoder.out_channels), plan.wire_ratio
     compressor = None if compressor is None else compressor.to(device)
     late = "late" in methods
     # a closed-loop point that computes only `none` reads no neighbour's map: this CAV senses (the visible set) only
@@ -76,7 +72,7 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
     single = None
     if late or share < 1.0:
         name = "late" if late else "none"
-        single = build_method_models(sc, encoder, (name,))[name].to(device)
+        single = build_method_models(plan, encoder, (name,))[name].to(device)
     args.startup.mark("models")
     static = static_from_bytes(bus.fetch("static", "main", START_TIMEOUT_S))
     assets = build_map_assets(static)

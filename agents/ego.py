@@ -46,33 +46,36 @@ from v2vsim.control.pilot import PilotStep
 from v2vsim.evaluation.fuse_and_score import predict_all
 from v2vsim.evaluation.gt import bev_ground_truth, gt_boxes
 from v2vsim.evaluation.metrics import cavs_in_range
-from v2vsim.perception.build import build_agent_encoder, decompress, wire_ratio
+from v2vsim.perception.build import build_agent_encoder, decompress
 from v2vsim.perception.extrapolate import extrapolate_features
 from v2vsim.perception.fuse import FusionInputs, Prediction
+from v2vsim.perception.plan import ModelPlan, plan_models
 from v2vsim.recording.scan import Scan, max_scan_bytes
 from v2vsim.sensors.scene import MapAssets
 from v2vsim.world.serialize import MAX_STATIC_BYTES, MAX_WORLD_BYTES, world_from_bytes
 from v2vsim.world.state import WorldState
 
 
-def largest_message(sc: Scenario, encoder: torch.nn.Module) -> int | None:
+def largest_message(sc: Scenario, encoder: torch.nn.Module, ratio: int) -> int | None:
     """The longest message the ego of `sc` accepts, whatever its kind (None: some kind has no bound): every
     V2V kind's (the uncompressed map from its own CAV included), the side channels, a world, the static map.
-    Its zenoh session drops a longer message before reassembling it (agents.lifecycle.receive_bound)."""
+    Its zenoh session drops a longer message before reassembling it (agents.lifecycle.receive_bound); `ratio`: the
+    wire's channel compression (ModelPlan.wire_ratio)."""
     c, f = encoder.out_channels, encoder.out_cells
-    specs = [*ego_wire_spec(sc, c, f, wire_ratio(sc)).items(), ("features", ego_wire_spec(sc, c, f, 1)["features"])]
+    specs = [*ego_wire_spec(sc, c, f, ratio).items(), ("features", ego_wire_spec(sc, c, f, 1)["features"])]
     sizes = [ks.max_message_bytes(kind) for kind, ks in specs]
     if any(n is None for n in sizes):
         return None
     return max([*sizes, MAX_VIS_BYTES, max_scan_bytes(sc), MAX_WORLD_BYTES, MAX_STATIC_BYTES])  # type: ignore[list-item]
 
 
-def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder: torch.nn.Module | None = None
-             ) -> int:
+def ego_loop(args: AgentArgs, bus: Bus, replay: ReplayBus | None = None, encoder: torch.nn.Module | None = None,
+             plan: ModelPlan | None = None) -> int:
     """The ego's whole run. `replay` (v2vsim evaluate): `bus` is a ReplayBus that feeds a recording's frames
     straight into the mailbox, after the arrival checks they passed when recorded; everything else is the same.
-    `encoder`: the CAVs' encoder, built already (main sizes its zenoh session by it)."""
-    ego = build_ego(args, bus, replay, encoder)
+    `encoder`: the CAVs' encoder, built already (main sizes its zenoh session by it) from `plan`, the scenario's
+    models resolved once (None: resolved in build_ego)."""
+    ego = build_ego(args, bus, replay, encoder, plan)
     bus.ready()
     run = EgoRun(t_start=time.monotonic())
     try:
@@ -275,9 +278,10 @@ def main(argv: list[str] | None = None) -> int:
     """The ego process: its zenoh session sized by the longest message it accepts, then its run."""
     args = parse_agent_args("ego", argv)
     torch.set_num_threads(1)
-    encoder = build_agent_encoder(args.scenario)
-    return run_agent(args, "ego", args.cav, lambda bus: ego_loop(args, bus, encoder=encoder),
-                     max_message_bytes=receive_bound(largest_message(args.scenario, encoder)))
+    plan = plan_models(args.scenario)  # the scenario's models, resolved once for the whole process
+    encoder = build_agent_encoder(plan)
+    return run_agent(args, "ego", args.cav, lambda bus: ego_loop(args, bus, encoder=encoder, plan=plan),
+                     max_message_bytes=receive_bound(largest_message(args.scenario, encoder, plan.wire_ratio)))
 
 
 if __name__ == "__main__":

@@ -38,12 +38,11 @@ from v2vsim.perception.build import (
     build_extrapolation,
     build_method_models,
     method_checkpoints,
-    runnable_methods,
-    wire_ratio,
 )
 from v2vsim.perception.device import device_record, resolve_device
 from v2vsim.perception.device import prepare as prepare_device
 from v2vsim.perception.fleet import agent_type, is_mixed
+from v2vsim.perception.plan import ModelPlan, plan_models
 from v2vsim.perception.precision import Precision
 from v2vsim.perception.precision import resolve as resolve_precision
 from v2vsim.perception.threads import fusion_pool, fusion_threads
@@ -66,6 +65,7 @@ MAX_VIS_BYTES = 1 << 20  # the visible-ids side channel: a few hundred ids
 class EgoModels:
     """What the ego runs, every model on `device` already."""
 
+    plan: ModelPlan  # the scenario's models, resolved once (v2vsim.perception.plan)
     device: torch.device
     encoder: torch.nn.Module  # the CAVs' encoder: its out_channels and out_cells size every feature message
     precision: Precision
@@ -154,13 +154,14 @@ class EgoRun:
     ego_poses: dict[int, Pose] = field(default_factory=dict)  # frame -> this ego's pose, the window's frames only
 
 
-def build_ego(args: AgentArgs, bus: Bus, replay: ReplayBus | None, encoder: torch.nn.Module | None) -> Ego:
+def build_ego(args: AgentArgs, bus: Bus, replay: ReplayBus | None, encoder: torch.nn.Module | None,
+              plan: ModelPlan | None = None) -> Ego:
     """The ego's whole set-up, in the order a live run needs it (the start-up marks "models" and "map" fall in
-    between); `encoder`: the CAVs' encoder where main built it already."""
+    between); `encoder`: the CAVs' encoder where main built it already, from `plan` (None: resolved here)."""
     torch.set_num_threads(1)
     sc, me = args.scenario, args.cav
     key = run_signer(args)
-    nets = load_models(args, encoder)
+    nets = load_models(args, encoder, plan)
     args.startup.mark("models")
     static_bytes, static, assets = load_map(bus, replay)
     args.startup.mark("map")
@@ -199,24 +200,26 @@ def v2v_kinds(sc: Scenario) -> list[str]:
         ["outputs"] if "late" in methods else [])
 
 
-def load_models(args: AgentArgs, encoder: torch.nn.Module | None) -> EgoModels:
-    """The ego's models, each moved to the scenario's device; `encoder` where main built it already."""
+def load_models(args: AgentArgs, encoder: torch.nn.Module | None, plan: ModelPlan | None = None) -> EgoModels:
+    """The ego's models, each moved to the scenario's device; `encoder` where main built it already, from `plan`
+    (the scenario's, resolved once: None resolves it here)."""
     sc = args.scenario
+    plan = plan_models(sc) if plan is None else plan
     # checked before any process started (runner, evaluate); again here, where the models will run
     device = resolve_device(sc.perception.device)
     prepare_device(device)
-    encoder = (encoder if encoder is not None else build_agent_encoder(sc)).to(device)
+    encoder = (encoder if encoder is not None else build_agent_encoder(plan)).to(device)
     precision = resolve_precision(sc.perception.precision)
     # every model moves to the device once; each inference moves its inputs and brings its outputs to the host
-    models = {m: model.to(device) for m, model in build_method_models(sc, encoder, runnable_methods(sc)).items()}
+    models = {m: model.to(device) for m, model in build_method_models(plan, encoder, plan.methods).items()}
     # comm.compensation: each intermediate method whose zoo ships a trained extrapolation (never a random one)
     extrapolations = {m: e.to(device) for m in models
-                      if sc.comm.compensation and (e := build_extrapolation(sc, m)) is not None}
+                      if sc.comm.compensation and (e := build_extrapolation(plan, m)) is not None}
     # defence: each sender's features decoded alone by the single-agent model, compared with the others' each frame
     sender_check = None if not sc.defence.on else SenderCheck(
-        sc, models["none"] if "none" in models else build_method_models(sc, encoder, ("none",))["none"].to(device),
+        sc, models["none"] if "none" in models else build_method_models(plan, encoder, ("none",))["none"].to(device),
         precision)
-    return EgoModels(device, encoder, precision, models, extrapolations, sender_check)
+    return EgoModels(plan, device, encoder, precision, models, extrapolations, sender_check)
 
 
 def load_map(bus: Bus, replay: ReplayBus | None) -> tuple[bytes, StaticMap, MapAssets]:
@@ -233,10 +236,10 @@ def build_wire(args: AgentArgs, nets: EgoModels, key: Signer | None, replay: Rep
     """The decode path of every kind the ego takes, with the scenario's exact shapes and bounds."""
     sc, me, encoder, device = args.scenario, args.cav, nets.encoder, nets.device
     c, f = encoder.out_channels, encoder.out_cells
-    compressor, ratio = build_compressor(sc, c), wire_ratio(sc)
+    compressor, ratio = build_compressor(nets.plan, c), nets.plan.wire_ratio
     compressor = None if compressor is None else compressor.to(device)
     # a mixed fleet: every feature message names its space, and one this ego's models were not trained on is refused
-    spaces = frozenset({feature_space(sc)}) if is_mixed(sc) else None
+    spaces = frozenset({feature_space(nets.plan)}) if is_mixed(sc) else None
     decoder = EgoDecoder(ego_wire_spec(sc, c, f, ratio, spaces), args.run_id, frozenset(args.cavs), key)
     # a compressed wire: the ego's own CAV also hands it its map uncompressed ("own"), which it fuses as its own
     own_decoder = None if compressor is None else EgoDecoder(
@@ -327,7 +330,7 @@ def compensation_schemes(sc: Scenario, methods: list[str], extrapolations: dict[
 def run_summary(args: AgentArgs, nets: EgoModels, wire: EgoWire) -> RunSummary:
     """The run's summary as far as the set-up knows it; the finish adds how the run went."""
     sc, models = args.scenario, nets.models
-    checkpoints = method_checkpoints(sc, tuple(models))
+    checkpoints = method_checkpoints(nets.plan, tuple(models))
     return RunSummary(scenario=sc, ego=args.cav, methods=list(models),
                       untrained=all(v is None for v in checkpoints.values()), checkpoints=checkpoints,
                       skipped=[m for m in sc.perception.methods if m not in models],

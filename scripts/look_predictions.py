@@ -29,6 +29,7 @@ from v2vsim.config import load_scenario  # noqa: E402
 from v2vsim.data.torch_dataset import CooperativeDataset  # noqa: E402
 from v2vsim.perception.build import build_agent_encoder, build_compressor, build_method_models  # noqa: E402
 from v2vsim.perception.fuse import predict  # noqa: E402
+from v2vsim.perception.plan import plan_models  # noqa: E402
 from v2vsim.training.validate import sample_fusion_inputs  # noqa: E402
 
 
@@ -48,10 +49,11 @@ def main() -> None:
     sc = load_scenario("scenarios/intersection.yaml", [f"perception.weights={a.weights}",
                                                        f"perception.modality={MODALITY[a.encoder]}",
                                                        f"perception.encoder={a.encoder}"])
-    enc = build_agent_encoder(sc)
-    models = build_method_models(sc, enc, methods)
-    single = build_method_models(sc, enc, ("late",))["late"]  # what each CAV runs for its late outputs
-    wire = build_compressor(sc, enc.out_channels)  # the neighbours' maps as the ego receives them (None: uncompressed)
+    plan = plan_models(sc, extra=(*methods, "late"))
+    enc = build_agent_encoder(plan)
+    models = build_method_models(plan, enc, methods)
+    single = build_method_models(plan, enc, ("late",))["late"]  # what each CAV runs for its late outputs
+    wire = build_compressor(plan, enc.out_channels)  # the neighbours' maps as the ego receives them (None: raw)
     ds = CooperativeDataset(a.data, a.split, max_agents=5, egos="first", with_points=not camera, with_images=camera)
     counts = [len(ds[i]["agents"]) for i in range(0, len(ds), 5)]
     order = np.argsort(-np.array(counts), kind="stable")[: a.samples] * 5

@@ -45,7 +45,7 @@ from v2vsim.config import ConfigError, Scenario, check_output_dir
 from v2vsim.evaluation.fleet_report import merge_fleet
 from v2vsim.evaluation.status import cav_ranges, terminal_line
 from v2vsim.launch import Launcher, Process, launcher
-from v2vsim.perception.build import method_checkpoints, runnable_methods, zoo_for
+from v2vsim.perception.build import method_checkpoints
 from v2vsim.perception.checks import check_scenario
 from v2vsim.perception.fleet import fleet_types
 from v2vsim.run_outcome import ego_statuses, write_failure_metrics
@@ -137,7 +137,7 @@ def _run(sc: Scenario, out: Path, frames: int, run_id: str, remote_cavs: tuple[s
          egos: list[str], launch: Launcher) -> int:
     """`run` once its arguments are checked: check the scenario, start every process through `launch`, watch
     them, stop them, and say how the run ended."""
-    check_scenario(sc)
+    plan = check_scenario(sc)  # the scenario's models, resolved once (v2vsim.perception.plan), and checked
     check_output_dir(out, "--out")
     try:
         if sc.transport.mode == "client":  # the router(s) must be reachable before anything starts
@@ -149,7 +149,7 @@ def _run(sc: Scenario, out: Path, frames: int, run_id: str, remote_cavs: tuple[s
         return 2
     procs = ["driver.main"] + [f"cav.{c}" for c in cavs if c not in remote_cavs] + [f"ego.{e}" for e in egos]
     overrides = _overrides_for_children(sc)
-    runnable = runnable_methods(sc)
+    runnable = plan.methods
     for lie in sc.misbehaviour:
         print(f"v2vsim: ATTACKED RUN (misbehaviour): {describe(lie)}", file=sys.stderr)
     if sc.cavs.penetration is not None:
@@ -166,8 +166,8 @@ def _run(sc: Scenario, out: Path, frames: int, run_id: str, remote_cavs: tuple[s
     if sc.cavs.fleet:
         types = fleet_types(sc, cavs)
         print("v2vsim: fleet: " + ", ".join(f"{c} {t.label}" for c, t in types.items()), file=sys.stderr)
-    z = zoo_for(sc)
-    untrained = [m for m, f in method_checkpoints(sc, runnable, z=z).items() if f is None] if z is not None else []
+    z = plan.zoo
+    untrained = [m for m, f in method_checkpoints(plan, runnable).items() if f is None] if z is not None else []
     if untrained:  # (the whole run untrained, weights none or no zoo: the report's first lines say so)
         print(f"v2vsim: note: {', '.join(untrained)}: no checkpoint in the zoo at {z.root} (perception.weights: "
               f"{sc.perception.weights}): run{'s' if len(untrained) == 1 else ''} untrained, with seeded random "

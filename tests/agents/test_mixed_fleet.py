@@ -64,6 +64,7 @@ def test_a_message_of_a_foreign_space_is_refused_and_counted(tmp_path: Path) -> 
     from v2vsim.comm.codec import Message, encode
     from v2vsim.config import load_scenario
     from v2vsim.perception.aligned import feature_space
+    from v2vsim.perception.plan import plan_models
     from v2vsim.world.serialize import static_to_bytes, world_to_bytes
     from v2vsim.world.state import WorldState
 
@@ -85,7 +86,7 @@ def test_a_message_of_a_foreign_space_is_refused_and_counted(tmp_path: Path) -> 
             super().ready()
             for cb in self.subs["features"]:
                 cb("cav1", features("cav1", "sinbevt@sinbevt_tiny:0123456789ab", (20.0, 0.0, 0.0, 0.0)))
-                cb("cav2", features("cav2", f"sinbevt@{feature_space(sc)}", (-20.0, 5.0, 0.0, 0.0)))
+                cb("cav2", features("cav2", f"sinbevt@{feature_space(plan_models(sc))}", (-20.0, 5.0, 0.0, 0.0)))
 
     assert ego_mod.ego_loop(args, Deliver(static_to_bytes(static), world_to_bytes(world))) == 0  # type: ignore[arg-type]
     m = json.loads((tmp_path / "metrics.json").read_text())

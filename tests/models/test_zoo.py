@@ -15,6 +15,7 @@ from models.registry import METHODS
 from v2vsim.config import ConfigError, load_scenario
 from v2vsim.perception.build import build_agent_encoder, build_method_models
 from v2vsim.perception.checks import check_scenario
+from v2vsim.perception.plan import plan_models
 
 # What each shipped zoo must hold: every method of its modality (a camera zoo has no early fusion: it ships
 # LiDAR points), and the scenario that runs it out of the box. LaRa, the second camera encoder, ships the
@@ -46,7 +47,8 @@ def test_every_shipped_checkpoint_matches_its_sha256_and_loads(encoder: str) -> 
         assert entry["image_backbone"] == "efficientnet_lite0"
     sc = load_scenario(scenario, overrides)
     assert sc.perception.weights == "auto"
-    models = build_method_models(sc, build_agent_encoder(sc), tuple(methods))
+    plan = plan_models(sc)
+    models = build_method_models(plan, build_agent_encoder(plan), tuple(methods))
     assert set(models) == methods
 
 
@@ -125,7 +127,7 @@ def test_a_camera_zoo_records_its_image_backbone(tmp_path) -> None:
     with pytest.raises(zoo.ZooError, match="efficientnet_lite0 image backbone; a resnet checkpoint"):
         zoo.register(path, encoder="sinbevt", preset="tiny", methods=["none"], info={}, root=tmp_path,
                      image_backbone="resnet")
-    enc = build_agent_encoder(load_scenario("scenarios/intersection_camera.yaml",
-                                            [f"perception.weights={zoo.WEIGHTS_DIR}"]))
+    enc = build_agent_encoder(plan_models(load_scenario("scenarios/intersection_camera.yaml",
+                                                        [f"perception.weights={zoo.WEIGHTS_DIR}"])))
     shipped = zoo.zoo_image_backbone(zoo.zoo_entry("sinbevt", "tiny"))
     assert enc.config.backbone == shipped and enc.backbone_attr == {"resnet": "resnet"}.get(shipped, "efficientnet")

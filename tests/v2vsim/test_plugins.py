@@ -18,6 +18,7 @@ from models.registry import BUILTIN_METHODS, fusion_kwargs
 from v2vsim.cli import main
 from v2vsim.config import ConfigError, PerceptionConfig, check_plugins, load_scenario
 from v2vsim.perception.build import build_agent_encoder, build_method_models, method_checkpoints
+from v2vsim.perception.plan import plan_models
 from v2vsim.training.stages import PLUGIN_SPEC, SPECS, stage_spec, stages_for
 
 SCENARIO = "scenarios/intersection.yaml"
@@ -131,9 +132,10 @@ def test_a_plugin_brings_its_own_weights_for_the_installed_zoo(fake_site, tmp_pa
                                                                       f"WEIGHTS = {str(tmp_path / 'weights')!r}"),
                       {"maxmix": "weightplug_mod:MaxMix"})
     sc = load_scenario(SCENARIO, ["perception.methods=[none, maxmix]"])  # perception.weights: auto
-    checkpoints = method_checkpoints(sc, ("none", "maxmix"))
+    plan = plan_models(sc)
+    checkpoints = method_checkpoints(plan, ("none", "maxmix"))
     assert checkpoints == {"none": "pointpillars_tiny/none.pt", "maxmix": str(shipped)}
-    model = build_method_models(sc, build_agent_encoder(sc), ("maxmix",))["maxmix"]
+    model = build_method_models(plan, build_agent_encoder(plan), ("maxmix",))["maxmix"]
     saved = torch.load(shipped, weights_only=True)["state_dict"]
     assert torch.equal(model.fusion.mix.weight, saved["fusion.mix.weight"])
 
@@ -143,10 +145,11 @@ def test_a_plugin_brings_its_own_weights_for_the_installed_zoo(fake_site, tmp_pa
     (tmp_path / "weights" / zoo.MANIFEST).write_text(json.dumps(doc))
     with pytest.raises(ConfigError, match="fusion plugin 'maxmix': the checkpoint it ships .* was trained on another "
                                           "model than the pointpillars_tiny zoo .*its encoder"):
-        method_checkpoints(sc, ("maxmix",))
+        method_checkpoints(plan_models(sc), ("maxmix",))  # a fresh plan: the manifest changed
 
 
 def test_a_plugin_without_weights_runs_untrained_and_says_so(plugins) -> None:
     sc = load_scenario(SCENARIO, ["perception.methods=[none, maxmix]"])
-    assert method_checkpoints(sc, ("none", "maxmix")) == {"none": "pointpillars_tiny/none.pt", "maxmix": None}
+    plan = plan_models(sc)
+    assert method_checkpoints(plan, ("none", "maxmix")) == {"none": "pointpillars_tiny/none.pt", "maxmix": None}
     assert fusion_kwargs("maxmix", "paper") == {}

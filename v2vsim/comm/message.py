@@ -148,7 +148,7 @@ class Message:
     compression: Compression = "none"
     channel_compression: int = 1
     extras: Mapping[str, np.ndarray] = field(default_factory=dict)
-    # "<encoder>@<feature space>" of a feature map in a mixed fleet (v2vsim.perception.build.space_label), e.g.
+    # "<encoder>@<feature space>" of a feature map in a mixed fleet (v2vsim.perception.aligned.space_label), e.g.
     # "sinbevt@pointpillars_tiny:f487cbd52552"; "" writes none (every single-encoder run: the wire bytes of before)
     space: str = ""
 

@@ -48,11 +48,11 @@ from v2vsim.perception.build import (
     build_method_models,
     compress,
     decompress,
-    wire_ratio,
 )
 from v2vsim.perception.encode import encode as encode_features
 from v2vsim.perception.encode import vehicle_confidence
 from v2vsim.perception.fuse import FusionInputs, Prediction, predict
+from v2vsim.perception.plan import plan_models
 from v2vsim.sensors.scene import build_map_assets, build_scene
 from v2vsim.sensors.sensing import ego_ids, sense
 from v2vsim.traffic import TrafficBackend, cav_id, make_backend
@@ -139,11 +139,13 @@ class CooperativePerceptionEnv(ParallelEnv):
                               "fleet runs with `v2vsim run`; allowed here: no cavs.fleet")
         self.possible_agents: list[str] = [cav_id(i) for i in range(sc.cavs.count)]
         self.agents: list[str] = []
-        self.encoder = build_agent_encoder(sc)
-        self.compressor = build_compressor(sc, self.encoder.out_channels)
-        self.models = build_method_models(sc, self.encoder, tuple(dict.fromkeys(("none", *options.methods))))
+        methods = tuple(dict.fromkeys(("none", *options.methods)))
+        plan = plan_models(sc, extra=methods)  # the scenario's models, resolved once; the env's methods among them
+        self.encoder = build_agent_encoder(plan)
+        self.compressor = build_compressor(plan, self.encoder.out_channels)
+        self.models = build_method_models(plan, self.encoder, methods)
         self.channels, self.cells = self.encoder.out_channels, self.encoder.out_cells
-        self.ratio = wire_ratio(sc)  # the zoo's, where comm.channel_compression is null
+        self.ratio = plan.wire_ratio  # the zoo's, where comm.channel_compression is null
         self.wire_shape = (self.channels // self.ratio, self.cells, self.cells)
         self.max_cycles: int | None = None  # PettingZoo's episode cap (parallel_api_test sets it); None: duration_s
         self._backend: TrafficBackend | None = None

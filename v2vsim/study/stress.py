@@ -108,10 +108,9 @@ def compensable(scenario: Path, methods: Sequence[str], overrides: Sequence[str]
     """Of `methods`, those comm.compensation changes: late fusion (model-free) and every method whose zoo ships an
     extrapolation module (docs/run.md "Time at the receiver")."""
     from v2vsim.config import load_scenario
-    from v2vsim.perception.build import zoo_for
+    from v2vsim.perception.plan import plan_models
 
-    zoo = zoo_for(load_scenario(scenario, list(overrides)))
-    learned = set(zoo.extrapolation) if zoo is not None else set()
+    learned = set(plan_models(load_scenario(scenario, list(overrides))).extrapolation)
     return [m for m in methods if m == "late" or m in learned]
 
 

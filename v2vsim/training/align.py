@@ -14,7 +14,7 @@ frame (the datasets record both sensors), relative to the latter's mean square.
 
 The checkpoint is an add-on of the LiDAR zoo entry, `<base>/align_<encoder>.pt`, listed under the entry's
 "aligned": {encoder: file}, its manifest record naming the sha256 of every base file it was trained against
-(v2vsim.perception.build.build_aligned_encoder refuses a pairing with any other base)."""
+(v2vsim.perception.aligned.build_aligned_encoder refuses a pairing with any other base)."""
 
 from __future__ import annotations
 

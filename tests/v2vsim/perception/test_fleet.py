@@ -13,9 +13,10 @@ from models.registry import is_intermediate
 from tests.v2vsim.perception._clouds import cloud
 from v2vsim.config import load_scenario
 from v2vsim.perception.aligned import build_cav_encoder, feature_space, space_label
-from v2vsim.perception.build import build_method_models, runnable_methods
+from v2vsim.perception.build import build_method_models
 from v2vsim.perception.encode import encode_points
 from v2vsim.perception.fleet import AgentType, agent_type, extra_types
+from v2vsim.perception.plan import plan_models, runnable_methods
 from v2vsim.recording.world3d import cav_colour
 
 MIXED = "scenarios/intersection_mixed.yaml"
@@ -29,10 +30,12 @@ def test_types_methods_and_spaces() -> None:
     assert "early" in runnable_methods(sc)  # a LiDAR ego merges the LiDAR CAVs' clouds
     cam_ego = load_scenario(MIXED, ["cavs.fleet=[{cavs: [cav0]}]"])
     assert "early" not in runnable_methods(cam_ego)
-    space = feature_space(sc)
+    plan = plan_models(sc)
+    space = feature_space(plan)
     assert space.startswith("pointpillars_tiny:") and len(space.split(":")[1]) == 12
-    assert space_label(sc, "cav2") == f"sinbevt@{space}" and space_label(sc, "cav0") == f"pointpillars@{space}"
-    assert space_label(load_scenario("scenarios/intersection.yaml"), "cav2") == ""  # no fleet: nothing on the wire
+    assert space_label(plan, "cav2") == f"sinbevt@{space}" and space_label(plan, "cav0") == f"pointpillars@{space}"
+    single = plan_models(load_scenario("scenarios/intersection.yaml"))
+    assert space_label(single, "cav2") == ""  # no fleet: nothing on the wire
 
 
 def test_mixed_inputs_keep_the_fusion_contract() -> None:
@@ -40,7 +43,8 @@ def test_mixed_inputs_keep_the_fusion_contract() -> None:
     and another LiDAR map fused; garbage (NaN, inf) in the absent slot leaves the fused map bit for bit unchanged,
     and the camera map changes it (it is fused, not ignored)."""
     sc = load_scenario(MIXED)
-    lidar, camera = build_cav_encoder(sc, "cav0"), build_cav_encoder(sc, "cav2")
+    plan = plan_models(sc)
+    lidar, camera = build_cav_encoder(plan, "cav0"), build_cav_encoder(plan, "cav2")
     assert isinstance(camera, AlignedEncoder)
     rng = np.random.default_rng(0)
     with torch.no_grad():
@@ -59,7 +63,7 @@ def test_mixed_inputs_keep_the_fusion_contract() -> None:
     no_cam[0, 1] = 0.0
     methods = tuple(m for m in runnable_methods(sc) if is_intermediate(m))
     assert methods == ("attfuse", "fcooper", "v2vnet", "disconet", "cobevt")
-    for m, model in build_method_models(sc, lidar, methods).items():
+    for m, model in build_method_models(plan, lidar, methods).items():
         with torch.no_grad():
             a, b = model.fuse(feats, rel, valid), model.fuse(garbage, rel, valid)
             c = model.fuse(no_cam, rel, valid)

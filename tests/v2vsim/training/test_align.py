@@ -20,6 +20,7 @@ from v2vsim.config import ConfigError, load_scenario
 from v2vsim.data.torch_dataset import CooperativeDataset, collate
 from v2vsim.perception.aligned import build_aligned_encoder, build_cav_encoder
 from v2vsim.perception.checks import check_scenario
+from v2vsim.perception.plan import plan_models
 from v2vsim.training.align import AlignSpec, align_losses, build_align_models, run_align
 from v2vsim.training.stages import TrainArgs, wire_compressor
 
@@ -86,9 +87,10 @@ def test_align_ships_an_add_on_and_leaves_the_base_as_it_was(aligned_zoo) -> Non
 def test_a_mixed_fleet_loads_the_aligned_encoder(aligned_zoo, camera_dataset) -> None:
     sc = load_scenario(MIXED, [f"perception.weights={aligned_zoo}"])
     check_scenario(sc)
-    cam = build_cav_encoder(sc, "cav2")
+    plan = plan_models(sc)
+    cam = build_cav_encoder(plan, "cav2")
     assert isinstance(cam, AlignedEncoder)
-    assert not isinstance(build_cav_encoder(sc, "cav0"), AlignedEncoder)
+    assert not isinstance(build_cav_encoder(plan, "cav0"), AlignedEncoder)
     s = CooperativeDataset(camera_dataset, "val", max_agents=1, with_images=True, with_points=False)[0]
     with torch.no_grad():
         out = cam(s["images"][0][None].float().div(255.0), s["intrinsics"][0][None], s["extrinsics"][0][None])
@@ -119,9 +121,9 @@ def test_a_zoo_without_an_aligned_encoder_names_the_stage(tmp_path) -> None:
     out = _zoo_copy(tmp_path / "zoo")
     sc = load_scenario(MIXED, [f"perception.weights={out}"])
     with pytest.raises(ConfigError, match="no sinbevt encoder aligned to it.*--stage align --encoder sinbevt"):
-        build_aligned_encoder(sc, "sinbevt")
+        build_aligned_encoder(plan_models(sc), "sinbevt")
     with pytest.raises(ConfigError, match="random weights have no aligned encoder"):
-        build_aligned_encoder(load_scenario(MIXED, ["perception.weights=none"]), "sinbevt")
+        build_aligned_encoder(plan_models(load_scenario(MIXED, ["perception.weights=none"])), "sinbevt")
 
 
 def test_distillation_weights_follow_what_the_camera_saw() -> None:

@@ -21,11 +21,10 @@ from v2vsim.perception.build import (
     build_method_models,
     compress,
     decompress,
-    fusion_cells,
     method_checkpoints,
-    wire_ratio,
 )
 from v2vsim.perception.checks import check_scenario
+from v2vsim.perception.plan import plan_models
 from v2vsim.training.stages import TrainArgs
 from v2vsim.training.train import main_train, run_stage
 
@@ -69,12 +68,13 @@ def test_the_compress_stage_registers_a_compressor_per_ratio_and_the_wire(compre
 def test_a_run_loads_the_zoo_grid_and_its_trained_compressor(compressed_zoo) -> None:
     tmp, _ = compressed_zoo
     sc = load_scenario("scenarios/intersection.yaml", [f"perception.weights={tmp / 'zoo'}"])
-    assert fusion_cells(sc) == 64 and wire_ratio(sc) == 8  # channel_compression: null = the zoo's wire ratio
-    enc = build_agent_encoder(sc)
+    plan = plan_models(sc)
+    assert plan.cells == 64 and plan.wire_ratio == 8  # channel_compression: null = the zoo's wire ratio
+    enc = build_agent_encoder(plan)
     assert enc.out_cells == 64
-    models = build_method_models(sc, enc, ("none", "cobevt"))
+    models = build_method_models(plan, enc, ("none", "cobevt"))
     assert models["cobevt"].heads.in_cells == 64
-    comp = build_compressor(sc, enc.out_channels)
+    comp = build_compressor(plan, enc.out_channels)
     saved = torch.load(tmp / "zoo" / "pointpillars_tiny" / "compressor_r8.pt", weights_only=True)["state_dict"]
     assert torch.equal(comp.encoder.weight, saved["compressor.encoder.weight"])
     # the sender's payload is C / 8 channels; the receiver restores C
@@ -84,10 +84,10 @@ def test_a_run_loads_the_zoo_grid_and_its_trained_compressor(compressed_zoo) -> 
     assert decompress(comp, payload).shape == (64, 64, 64)
     sixteen = load_scenario("scenarios/intersection.yaml",
                             [f"perception.weights={tmp / 'zoo'}", "comm.channel_compression=16"])
-    assert build_compressor(sixteen, 64).ratio == 16
+    assert build_compressor(plan_models(sixteen), 64).ratio == 16
     off = load_scenario("scenarios/intersection.yaml",
                         [f"perception.weights={tmp / 'zoo'}", "comm.channel_compression=1"])
-    assert build_compressor(off, 64) is None and wire_ratio(off) == 1
+    assert build_compressor(plan_models(off), 64) is None and plan_models(off).wire_ratio == 1
 
 
 def test_a_ratio_without_a_trained_compressor_is_a_config_error(compressed_zoo) -> None:
@@ -117,9 +117,10 @@ def test_a_fusion_method_trained_on_another_wire_has_its_own_checkpoint_that_run
         sc = load_scenario("scenarios/intersection.yaml", [weights, f"comm.channel_compression={ratio}",
                                                           "perception.methods=[none,cobevt]"])
         check_scenario(sc)
-        assert method_checkpoints(sc, ("none", "cobevt")) == {"none": "pointpillars_tiny/none.pt",
+        plan = plan_models(sc)
+        assert method_checkpoints(plan, ("none", "cobevt")) == {"none": "pointpillars_tiny/none.pt",
                                                               "cobevt": f"pointpillars_tiny/{name}"}
-        model = build_method_models(sc, build_agent_encoder(sc), ("cobevt",))["cobevt"]
+        model = build_method_models(plan, build_agent_encoder(plan), ("cobevt",))["cobevt"]
         saved = torch.load(tmp / "zoo" / "pointpillars_tiny" / name, weights_only=True)["state_dict"]
         key = next(k for k in saved if k.startswith("fusion.") and saved[k].is_floating_point())
         assert torch.equal(model.state_dict()[key], saved[key]), (ratio, key)
@@ -153,11 +154,12 @@ def test_wire_ratio_trains_only_fusion_methods_on_a_trained_wire(compressed_zoo,
 
 def test_random_weights_may_use_a_seeded_compressor_and_the_shipped_zoo_keeps_its_grid() -> None:
     sc = load_scenario("scenarios/intersection.yaml", ["perception.weights=none", "comm.channel_compression=16"])
-    a, b = build_compressor(sc, 64), build_compressor(sc, 64)
+    plan = plan_models(sc)
+    a, b = build_compressor(plan, 64), build_compressor(plan, 64)
     assert isinstance(a, ChannelCompressor) and torch.equal(a.encoder.weight, b.encoder.weight)
     shipped = load_scenario("scenarios/intersection.yaml")
     entry = zoo.zoo_entry("pointpillars", "tiny")
-    assert fusion_cells(shipped) == entry["cells"] == build_agent_encoder(shipped).out_cells
+    assert plan_models(shipped).cells == entry["cells"] == build_agent_encoder(plan_models(shipped)).out_cells
 
 
 def test_a_grid_other_than_the_zoo_s_is_refused_before_training(compressed_zoo, tiny_dataset) -> None:
@@ -187,7 +189,8 @@ def test_a_compressed_message_round_trips_through_the_codec_and_the_wire_spec(co
 
     tmp, _ = compressed_zoo
     sc = load_scenario("scenarios/intersection.yaml", [f"perception.weights={tmp / 'zoo'}"])
-    comp, ratio = build_compressor(sc, 64), wire_ratio(sc)
+    plan = plan_models(sc)
+    comp, ratio = build_compressor(plan, 64), plan.wire_ratio
     feats = np.random.default_rng(1).random((64, 64, 64), dtype=np.float32)
     stamp = {"run_id": "r", "sender_id": "cav1", "frame": 3, "capture_time": 0.3, "sender_pose": (1.0, 2.0, 0.0, 0.1)}
     payload = compress(comp, feats)  # as agents/cav.py: float32 [C/r, F, F]; the codec puts float16 on the air

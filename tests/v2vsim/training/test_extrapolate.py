@@ -15,6 +15,7 @@ from models import zoo
 from v2vsim.config import ConfigError, load_scenario
 from v2vsim.data.torch_dataset import CooperativeDataset, collate
 from v2vsim.perception.build import build_agent_encoder, build_extrapolation, build_method_models
+from v2vsim.perception.plan import plan_models
 from v2vsim.training.extrapolate import late_messages
 from v2vsim.training.stages import SPECS, TrainArgs, stages_for
 from v2vsim.training.train import run_stage
@@ -56,7 +57,7 @@ def test_extrapolate_stage_trains_only_the_addon_and_exports_it(tiny_dataset, tm
     for stage in ("single", "cache", "cobevt"):
         run_stage(_args(tiny_dataset, tmp_path, stage), log=log)
     # before the stage: the zoo has no extrapolation, and none is made up
-    assert build_extrapolation(_scenario(tmp_path)) is None
+    assert build_extrapolation(plan_models(_scenario(tmp_path))) is None
     cobevt_before = (tmp_path / "zoo" / "pointpillars_tiny" / "cobevt.pt").read_bytes()
 
     # the cache for an existing zoo: a --work without single/final.pt encodes with the zoo's encoder
@@ -92,15 +93,17 @@ def test_extrapolate_stage_trains_only_the_addon_and_exports_it(tiny_dataset, tm
 
     # the ego's build: the trained add-on, verified; the methods load as before
     sc = _scenario(tmp_path)
-    ext = build_extrapolation(sc)
+    plan = plan_models(sc)
+    ext = build_extrapolation(plan)
     assert ext is not None and not ext.training
     saved = torch.load(tmp_path / "zoo" / "pointpillars_tiny" / "cobevt_extrapolate.pt", weights_only=True)
     assert saved["stage"] == "extrapolate" and set(saved["state_dict"]) == {
         f"extrapolation.{k}" for k in ext.state_dict()}
     assert all(torch.equal(ext.state_dict()[k[len("extrapolation."):]], v) for k, v in saved["state_dict"].items())
-    assert build_extrapolation(sc, "v2vnet") is None
-    assert build_extrapolation(load_scenario("scenarios/intersection.yaml", ["perception.weights=none"])) is None
-    models = build_method_models(sc, build_agent_encoder(sc), ("cobevt",))
+    assert build_extrapolation(plan, "v2vnet") is None
+    random = load_scenario("scenarios/intersection.yaml", ["perception.weights=none"])
+    assert build_extrapolation(plan_models(random)) is None
+    models = build_method_models(plan, build_agent_encoder(plan), ("cobevt",))
     assert all(torch.equal(models["cobevt"].fusion.state_dict()[k[len("fusion."):]], v)
                for k, v in zoo_cobevt.items() if k.startswith("fusion."))
 
@@ -115,7 +118,7 @@ def test_extrapolate_stage_trains_only_the_addon_and_exports_it(tiny_dataset, tm
     doc["zoos"]["pointpillars_tiny"]["files"]["cobevt_extrapolate.pt"]["extrapolates"]["sha256"] = "f" * 64
     zoo.write_manifest(doc, tmp_path / "zoo")
     with pytest.raises(ConfigError, match="cobevt_extrapolate.pt: trained on top of cobevt.pt"):
-        build_extrapolation(sc)
+        build_extrapolation(plan_models(sc))  # a fresh plan: the manifest changed
 
 
 def test_build_extrapolation_is_none_for_a_zoo_without_one(tmp_path) -> None:
@@ -125,7 +128,7 @@ def test_build_extrapolation_is_none_for_a_zoo_without_one(tmp_path) -> None:
     for entry in doc["zoos"].values():
         entry.pop("extrapolation", None)
     zoo.write_manifest(doc, root)
-    assert build_extrapolation(_scenario(tmp_path)) is None
+    assert build_extrapolation(plan_models(_scenario(tmp_path))) is None
 
 
 def test_the_stage_needs_the_method_in_the_zoo(tiny_dataset, tmp_path) -> None:

@@ -17,6 +17,7 @@ from v2vsim.config import load_scenario
 from v2vsim.data.layout import DatasetError
 from v2vsim.data.torch_dataset import CooperativeDataset, collate
 from v2vsim.perception.build import build_agent_encoder, build_method_models, method_checkpoints
+from v2vsim.perception.plan import plan_models
 from v2vsim.training.held_out import sha256_file
 from v2vsim.training.losses import perception_loss
 from v2vsim.training.stages import SPECS, TrainArgs, build_stage_model
@@ -72,10 +73,11 @@ def test_stages_chain_into_a_loadable_zoo(tiny_dataset, tmp_path) -> None:
     assert info["validation"]["cobevt"]["frames"] == 1  # 2 validation frames, every 2nd one scored
 
     sc = load_scenario("scenarios/intersection.yaml", [f"perception.weights={tmp_path / 'zoo'}"])
-    assert method_checkpoints(sc, ("none", "cobevt", "v2vnet")) == {
+    plan = plan_models(sc)
+    assert method_checkpoints(plan, ("none", "cobevt", "v2vnet")) == {
         "none": "pointpillars_tiny/none.pt", "cobevt": "pointpillars_tiny/cobevt.pt", "v2vnet": None}
-    enc = build_agent_encoder(sc)
-    models = build_method_models(sc, enc, ("none", "cobevt"))
+    enc = build_agent_encoder(plan)
+    models = build_method_models(plan, enc, ("none", "cobevt"))
     saved = torch.load(tmp_path / "zoo" / "pointpillars_tiny" / "cobevt.pt", weights_only=True)["state_dict"]
     got = models["cobevt"].fusion.state_dict()
     assert all(torch.equal(got[k[len("fusion."):]], v) for k, v in saved.items() if k.startswith("fusion."))
@@ -176,8 +178,9 @@ def test_camera_stages_chain_into_a_zoo_a_camera_run_loads(camera_dataset, tmp_p
                                       image_backbone="resnet"), log=log)
     sc = load_scenario("scenarios/intersection.yaml", ["perception.modality=camera", "perception.encoder=sinbevt",
                                                        f"perception.weights={tmp_path / 'zoo'}"])
-    enc = build_agent_encoder(sc)
-    models = build_method_models(sc, enc, ("none", "cobevt"))
+    plan = plan_models(sc)
+    enc = build_agent_encoder(plan)
+    models = build_method_models(plan, enc, ("none", "cobevt"))
     saved = torch.load(tmp_path / "zoo" / "sinbevt_tiny" / "cobevt.pt", weights_only=True)["state_dict"]
     got = models["cobevt"].fusion.state_dict()
     assert all(torch.equal(got[k[len("fusion."):]], v) for k, v in saved.items() if k.startswith("fusion."))
