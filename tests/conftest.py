@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import compileall
+import os
 import subprocess
 from collections.abc import Iterator
 from pathlib import Path
@@ -85,6 +86,27 @@ def _one_torch_thread() -> Iterator[None]:
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _one_warm_starter() -> Iterator[None]:
+    """One warm starter (v2vsim.zygote) per worker for the whole suite, named in V2VSIM_ZYGOTE, as a sweep names
+    its own to its runs: every run the suite starts, in this process or as a `v2vsim run` child, forks its agents
+    from it instead of importing torch and the harness again in a starter of its own. A fork is a cold start's
+    equal to the last digit (tests/v2vsim/test_launch.py); a run that must start cold says so (V2VSIM_START=cold),
+    and one on another interpreter or import path starts its own (v2vsim.launch.fits)."""
+    from v2vsim.launch import ZYGOTE_ENV, Zygote, start_mode
+
+    if start_mode() == "cold" or os.environ.get(ZYGOTE_ENV):
+        yield
+        return
+    with Zygote() as zygote:
+        zygote.wait_ready()
+        os.environ[ZYGOTE_ENV] = zygote.path
+        try:
+            yield
+        finally:
+            os.environ.pop(ZYGOTE_ENV, None)
 
 
 @pytest.fixture(scope="session")

@@ -27,7 +27,7 @@ import threading
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
 from v2vsim.config import ConfigError
 
@@ -245,10 +245,20 @@ class Launcher:
     path: str | None = None
     owned: Zygote | None = None
     _client: Client | None = None
+    _identity: dict[str, Any] | None = None
 
     @property
     def warm(self) -> bool:
         return self.path is not None
+
+    def _fits(self, env: Mapping[str, str]) -> bool:
+        """Whether a process with environment `env` may be forked by this launcher's zygote: same interpreter
+        and PYTHONPATH (a fork keeps the zygote's import path, whatever the request's environment says)."""
+        if self._identity is None:
+            if self.owned is not None:
+                self.owned.wait_ready()
+            self._identity = zygote_identity(self.path) if self.path is not None else {}
+        return fits(self._identity, env)
 
     def child_env(self, env: Mapping[str, str]) -> dict[str, str]:
         """`env` for a child that starts processes of its own (a sweep's run): the same zygote for them."""
@@ -257,8 +267,9 @@ class Launcher:
     def start(self, module: str, argv: list[str], env: Mapping[str, str], *, stdin_pipe: bool = False,
               stdout: IO[bytes] | None = None) -> Process:
         """`python -m module argv` in its own process group, stdout and stderr into `stdout` (a file) or a pipe
-        (the process's .stdout) when None, stdin a pipe (.stdin) or /dev/null."""
-        if self.path is None:
+        (the process's .stdout) when None, stdin a pipe (.stdin) or /dev/null. Cold where the zygote does not fit
+        `env` (another PYTHONPATH)."""
+        if self.path is None or not self._fits(env):
             return subprocess.Popen([sys.executable, "-m", module, *argv], env=dict(env),
                                     stdin=subprocess.PIPE if stdin_pipe else subprocess.DEVNULL,
                                     stdout=subprocess.PIPE if stdout is None else stdout, stderr=subprocess.STDOUT,
@@ -282,14 +293,40 @@ class Launcher:
         self.close()
 
 
+def zygote_identity(path: str) -> dict[str, Any]:
+    """The interpreter and PYTHONPATH of the zygote at socket `path` (written beside it before it listens; {}
+    where it cannot be read: such a zygote fits nothing)."""
+    try:
+        with open(f"{path}.json") as f:
+            doc = json.load(f)
+    except (OSError, ValueError):
+        return {}
+    return doc if isinstance(doc, dict) else {}
+
+
+def _entries(pythonpath: str) -> set[str]:
+    return {os.path.realpath(p) for p in pythonpath.split(os.pathsep) if p}
+
+
+def fits(identity: Mapping[str, Any], env: Mapping[str, str]) -> bool:
+    """Whether a fork of the zygote with this identity runs what `python -m` would with environment `env`: the
+    same interpreter (a venv's python needs its own starter), every PYTHONPATH entry of `env` on the zygote's import
+    path, and none of the zygote's own PYTHONPATH entries missing from `env`'s (a plugin on another path)."""
+    wanted = _entries(env.get("PYTHONPATH", ""))
+    return (identity.get("python") == os.path.realpath(sys.executable)
+            and wanted <= set(identity.get("sys_path", ()))
+            and _entries(identity.get("pythonpath", "")) <= wanted)
+
+
 def launcher(env: Mapping[str, str] | None = None) -> Launcher:
-    """The launcher of this process's children: the zygote named by V2VSIM_ZYGOTE when one is up (a sweep's),
+    """The launcher of this process's children: the zygote named by V2VSIM_ZYGOTE when one is up (a sweep's) and it
+    fits this interpreter and PYTHONPATH,
     else one of its own when V2VSIM_START is warm (it starts importing now), else cold."""
     env = os.environ if env is None else env
     if start_mode(env) == "cold":
         return Launcher()
     path = env.get(ZYGOTE_ENV)
-    if path and Path(path).exists():
+    if path and Path(path).exists() and fits(zygote_identity(path), env):
         return Launcher(path)
     z = Zygote()
     return Launcher(z.path, owned=z)

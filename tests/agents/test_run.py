@@ -228,7 +228,9 @@ def test_ctrl_c_stops_every_process_and_writes_partial_report(tmp_path: Path) ->
     run.proc.send_signal(signal.SIGINT)
     rc = run.finish(timeout=30)
     assert rc == 130
-    assert time.monotonic() - t0 < 10
+    # promptly, not after the 400 frames (~2 min): the ego scores the frames in flight and writes its report and
+    # plots first, which took 11.7 s once under the suite's load on this 2-core machine
+    assert time.monotonic() - t0 < 20
     m = _metrics(out)
     assert m["status"].startswith("interrupted") and 20 <= m["frames"] < 400
     assert (out / "report.md").exists()

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from v2vsim.config import ConfigError
-from v2vsim.launch import MODE_ENV, ZYGOTE_ENV, Launcher, Zygote, launcher, start_mode
+from v2vsim.launch import MODE_ENV, ZYGOTE_ENV, Launcher, Zygote, fits, launcher, start_mode, zygote_identity
 
 REPO = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the warm starter forks (Linux)")
@@ -52,6 +52,16 @@ def test_the_environment_is_the_requesters(warm: Launcher) -> None:
     p = warm.start("tests.v2vsim.launch_probe", ["import os; print(os.environ.get('PROBE'))"],
                    dict(os.environ, PROBE="seen", PYTHONPATH=str(REPO)))
     assert p.stdout is not None and p.stdout.read().decode().strip() == "seen" and p.wait(timeout=30) == 0
+
+
+def test_a_request_on_another_import_path_starts_cold(warm: Launcher, tmp_path: Path) -> None:
+    # a fork keeps the zygote's sys.path: a PYTHONPATH entry it lacks (a plugin's folder) needs a cold start
+    (tmp_path / "only_here.py").write_text("WHERE = 'tmp'\n")
+    p = warm.start("tests.v2vsim.launch_probe", ["import only_here; print(only_here.WHERE)"],
+                   dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), str(tmp_path)])))
+    assert p.stdout is not None and p.stdout.read().decode().strip() == "tmp" and p.wait(timeout=60) == 0
+    assert not fits(zygote_identity(warm.path or ""), {"PYTHONPATH": str(tmp_path)})
+    assert fits(zygote_identity(warm.path or ""), {"PYTHONPATH": str(REPO)})
 
 
 def test_signals_and_crashes_end_it_as_they_end_a_cold_process(warm: Launcher) -> None:
