@@ -2,17 +2,19 @@
 schema cannot check because it needs torch, the zoo's files or the host's devices.
 
 Every checkpoint a process of the run loads is verified here (sha256, each distinct file read once) and checked to
-fit its model: the models are built on the meta device (no weights allocated, nothing initialised) and the keys
-and shapes of each checkpoint part compared with theirs, so that a misfit is refused with the message loading it
+fit its model: the models are built with their parameters left uninitialised (_shapes_only) and the keys and shapes of
+each checkpoint part compared with theirs, so that a misfit is refused with the message loading it
 would give (v2vsim.perception.build._load, load_part), without building every model for real.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
+from typing import Any
 
 import torch
 from torch import nn
+from torch.overrides import TorchFunctionMode
 
 from models.build import build_encoder
 from models.compression import ChannelCompressor
@@ -56,7 +58,7 @@ def check_plan(plan: ModelPlan) -> None:
     if ratio > 1 and plan.zoo is not None:  # random weights: a seeded random compressor, nothing to verify
         ckpt = plan.wire_compressor()
         assert ckpt is not None
-        comp = _meta(lambda: ChannelCompressor(channels, ratio))
+        comp = _shapes_only(lambda: ChannelCompressor(channels, ratio))
         _fits(comp, states.of(ckpt), "compressor.", lambda reason: misfit(
             ckpt.path, f"the ratio-{ratio} compressor does not fit", reason,
             f"rebuild it with: {ckpt.rebuild_command}"))
@@ -66,7 +68,7 @@ def check_plan(plan: ModelPlan) -> None:
     for encoder in plan.aligned:  # a mixed fleet: each type's aligned encoder, verified against this base
         aligned, state, train = aligned_state(plan, encoder)
         states.seen[aligned.checkpoint.path] = state
-        module = _meta(lambda encoder=encoder, aligned=aligned: aligned_module(plan, encoder, aligned))
+        module = _shapes_only(lambda encoder=encoder, aligned=aligned: aligned_module(plan, encoder, aligned))
         _fits(module, state, "encoder.", lambda reason, encoder=encoder, aligned=aligned, train=train: misfit(
             aligned.checkpoint.path, f"the aligned {encoder} encoder does not fit", reason, f"re-align with: {train}"))
     if plan.zoo is None:
@@ -79,8 +81,8 @@ def _check_methods(plan: ModelPlan, states: _States) -> None:
     processes load them (v2vsim.perception.build): each part present in its checkpoint fits its module."""
     ckpt = plan.checkpoint("encoder")
     if ckpt is not None:
-        encoder = _meta(lambda: build_encoder(plan.encoder, plan.preset, bev_size_m=plan.bev_size_m, cells=plan.cells,
-                                              image_backbone=plan.image_backbone))
+        encoder = _shapes_only(lambda: build_encoder(plan.encoder, plan.preset, bev_size_m=plan.bev_size_m,
+                                                     cells=plan.cells, image_backbone=plan.image_backbone))
         _fits(encoder, states.of(ckpt), "encoder.", lambda reason: method_misfit(ckpt, "encoder.", "encoder", reason),
               optional=True)
     files = {m: plan.checkpoint(m) for m in plan.methods}
@@ -90,7 +92,7 @@ def _check_methods(plan: ModelPlan, states: _States) -> None:
     for m, c in files.items():
         if c is None:
             continue
-        model = _meta(lambda m=m: method_model(plan, m))
+        model = _shapes_only(lambda m=m: method_model(plan, m))
         parts = (("encoder.", model.encoder),) if m == "early" else ()  # early fusion's encoder: its own weights
         for prefix, module in (*parts, ("fusion.", model.fusion), ("heads.", model.heads)):
             _fits(module, states.of(c), prefix, lambda reason, c=c, prefix=prefix, m=m: method_misfit(
@@ -101,7 +103,7 @@ def _check_methods(plan: ModelPlan, states: _States) -> None:
         found = extrapolation_state(plan, m)
         if found is not None:
             ext, sub = found
-            module = _meta(lambda m=m, ext=ext, sub=sub: extrapolation_module(plan, ext, sub, m, load=False))
+            module = _shapes_only(lambda m=m, ext=ext, sub=sub: extrapolation_module(plan, ext, sub, m, load=False))
             _fits(module, sub, "",
                   lambda reason, m=m, ext=ext: misfit(ext.path, f"the {m} extrapolation weights do not fit", reason,
                                                       f"rebuild it with: {ext.rebuild_command}"))
@@ -119,15 +121,32 @@ class _States:
         return self.seen[ckpt.path]
 
 
-def _meta(build: Callable[[], nn.Module]) -> nn.Module:
-    """The module `build` makes, on the meta device: its parameters and buffers have shapes and no storage. A
-    module whose construction computes on tensor values (a meta tensor has none: .item(), .numpy() and the like
-    raise) is built on the CPU instead; only the keys and shapes of its state_dict are read either way."""
-    try:
-        with torch.device("meta"):
-            return build()
-    except (RuntimeError, NotImplementedError, TypeError, ValueError):
+def _shapes_only(build: Callable[[], nn.Module]) -> nn.Module:
+    """The module `build` makes, its parameters allocated and never initialised: only the keys and shapes of its
+    state_dict are read. On the CPU, not the meta device: torch computes on meta tensors (a fill, an anchor grid)
+    through torch._refs, whose first call imports torch._dynamo, 2.5 s of every run's start here; the tiny models'
+    allocation is cheap, and their random initialisation, the costly part, is skipped."""
+    with _NoParameterInit():
         return build()
+
+
+# torch.nn.init's random initialisers and the Tensor methods they use
+_RANDOM_INITS = frozenset({"normal_", "uniform_", "trunc_normal_", "kaiming_normal_", "kaiming_uniform_",
+                           "xavier_normal_", "xavier_uniform_", "orthogonal_"})
+
+
+class _NoParameterInit(TorchFunctionMode):
+    """A parameter's random initialiser returns the parameter as it is (whatever the allocator left in it). A
+    buffer's runs: a construction may compute on it."""
+
+    def __torch_function__(self, func: Callable[..., Any], types: Any, args: tuple[Any, ...] = (),
+                           kwargs: dict[str, Any] | None = None) -> Any:
+        kwargs = kwargs or {}
+        if getattr(func, "__name__", "") in _RANDOM_INITS:
+            target = args[0] if args else kwargs.get("tensor")  # torch.nn.init passes it by name
+            if isinstance(target, nn.Parameter):
+                return target
+        return func(*args, **kwargs)
 
 
 def _fits(module: nn.Module, state: Mapping[str, torch.Tensor], prefix: str,
