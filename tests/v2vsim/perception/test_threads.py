@@ -13,6 +13,7 @@ from v2vsim.config import ConfigError, load_scenario
 from v2vsim.evaluation.fuse_and_score import predict_all
 from v2vsim.perception.encode import encode_points, late_outputs
 from v2vsim.perception.fuse import FusionInputs
+from v2vsim.perception.precision import native_bf16
 from v2vsim.perception.threads import fusion_pool, fusion_threads
 
 
@@ -30,7 +31,11 @@ def test_auto_is_one_thread_per_core_at_most_one_per_method() -> None:
 @pytest.mark.parametrize("precision", ["fp32", "bf16"])
 def test_methods_fused_side_by_side_are_bit_identical_to_one_at_a_time(precision: str) -> None:
     torch.set_num_threads(1)  # as in every agent process
-    methods = ("none", "late", "early", "fcooper", "v2vnet", "cobevt")
+    methods: tuple[str, ...] = ("none", "late", "early", "fcooper", "v2vnet", "cobevt")
+    if precision == "bf16" and not native_bf16():
+        # emulated bfloat16 (an AVX2-only CPU) ran V2VNet's three predictions ~75 % of this test's 96 s; it runs
+        # it side by side in the float32 case, and in bfloat16 wherever the CPU computes bfloat16 natively
+        methods = tuple(m for m in methods if m != "v2vnet")
     models = {}
     for i, m in enumerate(methods):
         torch.manual_seed(i)
