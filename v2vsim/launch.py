@@ -310,10 +310,11 @@ def _entries(pythonpath: str) -> set[str]:
 
 def fits(identity: Mapping[str, Any], env: Mapping[str, str]) -> bool:
     """Whether a fork of the zygote with this identity runs what `python -m` would with environment `env`: the
-    same interpreter (a venv's python needs its own starter), every PYTHONPATH entry of `env` on the zygote's import
-    path, and none of the zygote's own PYTHONPATH entries missing from `env`'s (a plugin on another path)."""
+    same interpreter and prefix (a venv's python needs its own starter), every PYTHONPATH entry of `env` on the
+    zygote's import path, and none of the zygote's own PYTHONPATH entries missing from `env`'s (a plugin's)."""
     wanted = _entries(env.get("PYTHONPATH", ""))
     return (identity.get("python") == os.path.realpath(sys.executable)
+            and identity.get("prefix") == sys.prefix  # a venv's python resolves to its base interpreter's
             and wanted <= set(identity.get("sys_path", ()))
             and _entries(identity.get("pythonpath", "")) <= wanted)
 

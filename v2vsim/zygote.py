@@ -128,7 +128,8 @@ def serve(path: str) -> None:
     # what a requester checks before it asks (v2vsim.launch.fits): a fork runs this interpreter with this
     # import path, whatever PYTHONPATH its request names
     with open(f"{path}.json", "w") as f:
-        json.dump({"python": os.path.realpath(sys.executable), "pythonpath": os.environ.get("PYTHONPATH", ""),
+        json.dump({"python": os.path.realpath(sys.executable), "prefix": sys.prefix,
+                   "pythonpath": os.environ.get("PYTHONPATH", ""),
                    "sys_path": [os.path.realpath(p) for p in sys.path if p]}, f)
     listener = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
     listener.bind(path)

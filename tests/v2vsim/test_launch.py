@@ -62,6 +62,8 @@ def test_a_request_on_another_import_path_starts_cold(warm: Launcher, tmp_path: 
     assert p.stdout is not None and p.stdout.read().decode().strip() == "tmp" and p.wait(timeout=60) == 0
     assert not fits(zygote_identity(warm.path or ""), {"PYTHONPATH": str(tmp_path)})
     assert fits(zygote_identity(warm.path or ""), {"PYTHONPATH": str(REPO)})
+    # a venv's python is a link to the base interpreter: its prefix tells them apart (tests/test_fusion_plugin.py)
+    assert not fits({**zygote_identity(warm.path or ""), "prefix": "/a/venv"}, {"PYTHONPATH": str(REPO)})
 
 
 def test_signals_and_crashes_end_it_as_they_end_a_cold_process(warm: Launcher) -> None:
