@@ -252,8 +252,8 @@ class Launcher:
         return self.path is not None
 
     def _fits(self, env: Mapping[str, str]) -> bool:
-        """Whether a process with environment `env` may be forked by this launcher's zygote: same interpreter
-        and PYTHONPATH (a fork keeps the zygote's import path, whatever the request's environment says)."""
+        """Whether a process with environment `env` may be forked by this launcher's zygote (`fits`: a fork keeps
+        the zygote's interpreter and import path, whatever the request's environment says)."""
         if self._identity is None:
             if self.owned is not None:
                 self.owned.wait_ready()
@@ -294,7 +294,7 @@ class Launcher:
 
 
 def zygote_identity(path: str) -> dict[str, Any]:
-    """The interpreter and PYTHONPATH of the zygote at socket `path` (written beside it before it listens; {}
+    """The interpreter, prefix and import path of the zygote at socket `path` (written beside it before it listens; {}
     where it cannot be read: such a zygote fits nothing)."""
     try:
         with open(f"{path}.json") as f:
@@ -320,9 +320,9 @@ def fits(identity: Mapping[str, Any], env: Mapping[str, str]) -> bool:
 
 
 def launcher(env: Mapping[str, str] | None = None) -> Launcher:
-    """The launcher of this process's children: the zygote named by V2VSIM_ZYGOTE when one is up (a sweep's) and it
-    fits this interpreter and PYTHONPATH,
-    else one of its own when V2VSIM_START is warm (it starts importing now), else cold."""
+    """The launcher of this process's children: the zygote named by V2VSIM_ZYGOTE when one is up (a sweep's) and
+    it fits this process (`fits`), else one of its own when V2VSIM_START is warm (it starts importing now), else
+    cold."""
     env = os.environ if env is None else env
     if start_mode(env) == "cold":
         return Launcher()
