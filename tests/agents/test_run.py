@@ -32,14 +32,16 @@ CONTRACT_METHOD_KEYS = {"iou_vehicle", "iou_vehicle_frame_mean", "iou_road", "io
 
 
 class Run:
-    """`v2vsim run` as a child process whose stderr is read line by line. Its agents start cold (V2VSIM_START):
-    these tests find an agent to kill or inspect by its command line, which a process forked by the warm starter
-    shares with the starter (tests/v2vsim/test_launch.py tests warm starts, and every other run test starts warm)."""
+    """`v2vsim run` as a child process whose stderr is read line by line. Its agents fork from the suite's warm
+    starter (tests/conftest.py) unless `cold`: a test that finds an agent to kill or inspect among the runner's
+    children, by its command line, needs them started cold, since a forked agent is the starter's child and shares
+    its command line (tests/v2vsim/test_launch.py shows a fork behaves as a cold process otherwise)."""
 
-    def __init__(self, *args: str, scenario: str = SCENARIO) -> None:
+    def __init__(self, *args: str, scenario: str = SCENARIO, cold: bool = False) -> None:
+        env = {**os.environ, MODE_ENV: "cold"} if cold else dict(os.environ)
         self.proc = subprocess.Popen([sys.executable, "-m", "v2vsim.cli", "run", scenario, *args],
                                      stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, cwd=REPO,
-                                     env={**os.environ, MODE_ENV: "cold"})
+                                     env=env)
         self.lines: queue.Queue[str] = queue.Queue()
         self.log: list[str] = []
         threading.Thread(target=self._read, daemon=True).start()
@@ -220,7 +222,7 @@ def test_the_camera_scenario_runs_its_shipped_zoo(tmp_path: Path) -> None:
 
 def test_ctrl_c_stops_every_process_and_writes_partial_report(tmp_path: Path) -> None:
     out = tmp_path / "run"
-    run = Run("--frames", "400", "--out", str(out), "--set", "cavs.count=2", "--methods", "none,cobevt")
+    run = Run("--frames", "400", "--out", str(out), "--set", "cavs.count=2", "--methods", "none,cobevt", cold=True)
     run.wait_frames(20)
     children = run.children()
     assert len(children) >= 4
@@ -260,7 +262,7 @@ def test_sigkilled_runner_leaves_no_orphans(tmp_path: Path) -> None:
     """issue 8 item 6: the children get SIGTERM when the runner dies (PR_SET_PDEATHSIG)."""
     out = tmp_path / "run"
     run = Run("--frames", "400", "--out", str(out), "--set", "cavs.count=2", "--methods", "none",
-              "--set", "output.rerun=false")
+              "--set", "output.rerun=false", cold=True)
     run.wait_frames(2)
     children = run.children()
     assert len(children) == 4, [p.cmdline() for p in children]
@@ -280,7 +282,7 @@ def test_killed_driver_is_reported_and_every_process_stops(tmp_path: Path) -> No
     """issue 8 item 9: the runner says the driver died, exits non-zero, and stops the rest promptly."""
     out = tmp_path / "run"
     run = Run("--frames", "400", "--out", str(out), "--set", "cavs.count=2", "--methods", "none",
-              "--set", "output.rerun=false")
+              "--set", "output.rerun=false", cold=True)
     run.wait_frames(2)
     children = run.children()
     drivers = _agents(run, "agents.driver")
@@ -302,7 +304,7 @@ def test_killed_ego_leaves_a_metrics_json_that_says_so(tmp_path: Path) -> None:
     """issue 34 item 9: a SIGKILLed ego writes nothing; the runner writes metrics.json with why."""
     out = tmp_path / "run"
     run = Run("--frames", "400", "--out", str(out), "--set", "cavs.count=2", "--methods", "none",
-              "--set", "output.rerun=false")
+              "--set", "output.rerun=false", cold=True)
     run.wait_frames(2)
     egos = _agents(run, "agents.ego")
     assert len(egos) == 1
@@ -373,7 +375,7 @@ def test_malformed_messages_are_rejected_over_a_router(tmp_path: Path) -> None:
         out = tmp_path / "run"
         run = Run("--frames", "40", "--out", str(out), "--run-id", "rogue1", "--set", "cavs.count=2",
                   "--methods", "none,cobevt", "--set", "transport.mode=client",
-                  "--set", f"transport.connect=[{endpoint}]", "--set", "comm.auth.identity=off")
+                  "--set", f"transport.connect=[{endpoint}]", "--set", "comm.auth.identity=off", cold=True)
         run.wait_frames(20)
         cfg = zenoh.Config()
         for k, v in {"mode": "client", "scouting/multicast/enabled": False, "scouting/gossip/enabled": False,
