@@ -18,7 +18,7 @@ from v2vsim.config import Scenario
 from v2vsim.control.critical import critical_measures, critical_total
 from v2vsim.control.measures import driving_block, vehicle_measures
 from v2vsim.control.pilot import Pilot
-from v2vsim.control.score import PENALTY, score_block, total_score
+from v2vsim.control.score import CLOSE_CALL, CLOSE_CALL_PENALTY, PENALTY, safety_block, score_block, total_score
 from v2vsim.evaluation.fuse_and_score import box_iou
 from v2vsim.evaluation.report import write_outputs
 from v2vsim.evaluation.status import final_status, unscored
@@ -145,8 +145,10 @@ def driving_summary(sc: Scenario, me: str, pilot: Pilot, word: dict, time_limit_
     per = vehicle_measures(pilot.frames, sc.dt, c.hard_brake_mps2, c.near_miss_gap_m, count)
     if per.get("frames"):
         per |= score_block(pilot.frames, per["collisions"], time_limit_reached)
+        per |= safety_block(per)
         per |= critical_measures(pilot.frames, pilot.critical)
-    block = driving_block({me: per}, {**header, "route_m": c.route_m, "penalties": dict(PENALTY)})
+    block = driving_block({me: per}, {**header, "route_m": c.route_m, "penalties": dict(PENALTY),
+                                      "close_call": {**CLOSE_CALL, "penalty": round(CLOSE_CALL_PENALTY, 4)}})
     block["total"] |= total_score([v for v in block["vehicles"].values() if v.get("frames")])
     block["total"] |= critical_total(block["vehicles"], me)
     return block

@@ -15,6 +15,19 @@ the CARLA leaderboard defines it, on the frames one driven vehicle's ego logged 
 - success: the route completed and no infraction.
 - efficiency (a sweep's, v2vsim/study/driving.py): the oracle's completion time on the same configuration (grid point
   but control.method, seed) over the run's, when both completed their routes: 1 drives as fast as the oracle.
+
+The safety-weighted score (issue 67) beside it, which the CARLA-style score leaves as it is:
+- close_call: no collision, yet a serious conflict: SUMO's SSM minimum TTC under CLOSE_CALL["ttc_s"] (1.5 s, the
+  conflict threshold of FHWA's Surrogate Safety Assessment Model, Gettman et al., FHWA-HRT-08-051, 2008), or a
+  post-encroachment time (SSM's or the trajectories', v2vsim/control/measures.py) under CLOSE_CALL["pet_s"] (1 s,
+  the "serious conflict" bound of the PET literature, e.g. Peesapati et al., TRB 2013), or the footprints within
+  control.near_miss_gap_m (the gap near miss). The thresholds are fixed here, not per scenario: control.ssm's are
+  the SSM device's logging thresholds (SUMO's defaults, TTC 3 s, PET 2 s), looser by design.
+- safety_score = driving_score x CLOSE_CALL_PENALTY per close call (at most one per vehicle and run: SSM keeps the
+  run's extremes, not each conflict). CLOSE_CALL_PENALTY = sqrt(0.60) = 0.775: a close call costs half a collision
+  in the score's log, since it is a collision that did not happen by a margin the driver did not choose. So a drive
+  that completes its route by cutting in front of a foe scores below one that completes it cleanly, and a run whose
+  only infraction is a collision keeps its CARLA score.
 """
 
 from __future__ import annotations
@@ -26,6 +39,8 @@ from typing import Any
 from v2vsim.control.measures import DrivenFrame
 
 PENALTY = {"collision_vehicle": 0.60, "red_light": 0.70, "timeout": 0.70}
+CLOSE_CALL = {"ttc_s": 1.5, "pet_s": 1.0}  # a conflict under either bound, without contact, is a close call
+CLOSE_CALL_PENALTY = math.sqrt(PENALTY["collision_vehicle"])  # 0.775: half a collision (module doc)
 RED_LIGHT_SLACK_M = 1.0  # a red stop line at most this past what the vehicle drove in a step was the one it crossed
 
 
@@ -77,6 +92,30 @@ def score_block(frames: Sequence[DrivenFrame], collisions: int, time_limit_reach
             "infractions": counts}
 
 
+def close_call(collisions: int, gap_near_miss: bool, min_ttc_s: float | None,
+               pet_s: Sequence[float | None]) -> bool:
+    """A serious conflict without contact (module doc): min TTC or any of the PETs (`pet_s`: SSM's, the
+    trajectories') under CLOSE_CALL, or the gap near miss. None values are measures SSM did not log."""
+    if collisions > 0:
+        return False
+    if gap_near_miss or (min_ttc_s is not None and min_ttc_s < CLOSE_CALL["ttc_s"]):
+        return True
+    return any(p is not None and p < CLOSE_CALL["pet_s"] for p in pet_s)
+
+
+def safety_score(score: float | None, close: bool) -> float | None:
+    """The driving score with the close-call penalty (None without a driving score)."""
+    return None if score is None else score * (CLOSE_CALL_PENALTY if close else 1.0)
+
+
+def safety_block(vehicle: dict[str, Any]) -> dict[str, Any]:
+    """The safety fields of one vehicle's `driving` entry, from its measures and score block."""
+    close = close_call(vehicle["collisions"], bool(vehicle.get("near_miss")), vehicle["ssm"]["min_ttc_s"],
+                       (vehicle["ssm"]["min_pet_s"], vehicle.get("pet_s")))
+    safety = safety_score(vehicle.get("driving_score"), close)
+    return {"close_call": close, "safety_score": None if safety is None else round(safety, 4)}
+
+
 def total_score(vehicles: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """The fleet's: mean driving score and route completion, successes out of vehicles, infractions summed."""
     scored = [v for v in vehicles if v.get("driving_score") is not None]
@@ -84,7 +123,10 @@ def total_score(vehicles: Sequence[dict[str, Any]]) -> dict[str, Any]:
     for v in vehicles:
         for k, n in v.get("infractions", {}).items():
             counts[k] = counts.get(k, 0) + n
+    safe = [v["safety_score"] for v in scored if v.get("safety_score") is not None]
     return {"driving_score": round(sum(v["driving_score"] for v in scored) / len(scored), 4) if scored else None,
+            "safety_score": round(sum(safe) / len(safe), 4) if safe and len(safe) == len(scored) else None,
+            "close_calls": sum(1 for v in vehicles if v.get("close_call")),
             "route_completion": (round(sum(v["route_completion"] for v in scored) / len(scored), 4)
                                  if scored else None),
             "success": bool(vehicles) and all(v.get("success") for v in vehicles),

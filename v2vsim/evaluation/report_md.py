@@ -73,14 +73,16 @@ def driving_md(d: dict | None) -> list[str]:
         lines += ["", "Driving score (the CARLA leaderboard's: route completion x "
                   + " x ".join(f"{p:g} per {k.replace('_', ' ')}" for k, p in pen.items())
                   + f"; route {f(d.get('route_m'), ' m') if d.get('route_m') else 'to the end of its SUMO route'}, "
-                  "time limit the run's duration):", "",
+                  "time limit the run's duration). Safety-weighted: x 0.775 for a close call (no collision, yet "
+                  "SSM's min TTC under 1.5 s, a PET under 1 s or the gap near miss; v2vsim/control/score.py):", "",
                   "| vehicle | driving score | route completion | success | completed at s | infractions | "
-                  "peak jerk m/s³ |", "|---|---|---|---|---|---|---|"]
+                  "close call | safety-weighted score | peak jerk m/s³ |", "|---|---|---|---|---|---|---|---|---|"]
         for v, m in scored:
             inf = ", ".join(f"{k.replace('_', ' ')} {n}" for k, n in m["infractions"].items() if n) or "none"
+            close = "-" if "close_call" not in m else ("yes" if m["close_call"] else "no")
             lines.append(f"| {v} | {f(m['driving_score'])} | {f(m['route_completion'])} | "
-                         f"{'yes' if m['success'] else 'no'} | {f(m['finished_at_s'])} | {inf} | "
-                         f"{f(m.get('peak_jerk_mps3'))} |")
+                         f"{'yes' if m['success'] else 'no'} | {f(m['finished_at_s'])} | {inf} | {close} | "
+                         f"{f(m.get('safety_score'))} | {f(m.get('peak_jerk_mps3'))} |")
     crit = [(v, m) for v, m in d["vehicles"].items() if m.get("critical_actor")]
     if crit:
         lines += ["", f"The critical actor ({crit[0][1]['critical_actor']}) on the map each vehicle drove on: detected "

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from v2vsim.control.score import close_call, safety_score
 from v2vsim.evaluation.status import as_configured
 from v2vsim.study.stats import DEFAULT_B, DEFAULT_RNG_SEED, Interval, interval
 from v2vsim.study.summary import cell
@@ -30,13 +31,16 @@ ORACLE, BASELINE = "oracle", "none"
 # measure -> (label, what a run's sweep row holds); efficiency is derived from finished_at_s (below)
 MEASURES = {"driving_score": "driving score", "success": "success rate", "collision": "collision rate",
             "route_completion": "route completion", "efficiency": "efficiency", "iou_vehicle": "vehicle IoU",
+            # a serious conflict without contact, and the score with its penalty (v2vsim/control/score.py)
+            "close_call": "close-call rate", "safety_score": "safety-weighted score",
             # the critical-actor measure (v2vsim/control/critical.py) of the ego: detected before the conflict (0/1),
             # its lead time with a miss counted as 0 s, and the share of frames it stayed detected (detected only)
             "critical_detected": "critical actor detected", "critical_lead_s": "critical lead time (s)",
             "critical_share": "critical actor held"}
 # what may predict a run's success (predictors_md): the map-wide measures beside the critical actor's
 PREDICTORS = ("iou_vehicle", "ap50", "critical_detected", "critical_lead_s", "critical_share")
-RANKED = ("driving_score", "success", "collision", "efficiency")  # the measures compared pairwise
+# the measures compared pairwise
+RANKED = ("driving_score", "success", "collision", "efficiency", "close_call", "safety_score")
 ALL = "overall"
 
 
@@ -68,6 +72,7 @@ def episodes_of(family: str, doc: dict[str, Any]) -> dict[Episode, dict[str, dic
             "iou_vehicle": None if m == ORACLE else _num(row.get("iou_vehicle")),
             "ap50": None if m == ORACLE else _num(row.get("ap50")),
             **_critical(row),
+            **_safety(row),
         }
     for runs in out.values():
         ref = (runs.get(ORACLE) or {}).get("finished_at_s")
@@ -76,6 +81,22 @@ def episodes_of(family: str, doc: dict[str, Any]) -> dict[Episode, dict[str, dic
             v["efficiency"] = (ref / mine if ref is not None and mine else None) if m != ORACLE else (
                 1.0 if mine is not None else None)
     return out
+
+
+def _safety(row: dict[str, Any]) -> dict[str, float | None]:
+    """A run's close call (0/1) and safety-weighted score from its sweep row. A run from before metrics.json had
+    them (the fields absent) gets them from the same row's SSM and gap figures by the same definition, exact for
+    one driven vehicle (the row's figures are the fleet's extremes)."""
+    score, coll = _num(row.get("driving_driving_score")), _num(row.get("driving_collisions"))
+    if "driving_close_calls" in row:
+        calls = _num(row.get("driving_close_calls"))
+        return {"close_call": None if calls is None else float(calls > 0),
+                "safety_score": _num(row.get("driving_safety_score"))}
+    if coll is None:
+        return {"close_call": None, "safety_score": None}
+    close = close_call(int(coll), (_num(row.get("driving_near_misses")) or 0) > 0, _num(row.get("driving_min_ttc_s")),
+                       (_num(row.get("driving_min_pet_s")), _num(row.get("driving_pet_s"))))
+    return {"close_call": float(close), "safety_score": safety_score(score, close)}
 
 
 def _critical(row: dict[str, Any]) -> dict[str, float | None]:
@@ -230,22 +251,28 @@ def leaderboard_md(bs: Sequence[Board], meta: dict[str, Any],
              f"Catalogue `{meta['catalogue']}`, profile `{meta['profile']}`, {meta['split']} seeds "
              f"{meta['seeds']}; methods ranked by mean driving score (overall). An episode is one (family, "
              "configuration, seed); every method drove the same episodes. Intervals: 95 % paired bootstrap over "
-             "episodes (expanded percentile); * marks a difference whose interval excludes 0."
+             "episodes (expanded percentile); * marks a difference whose interval excludes 0. A close call: no "
+             "collision, yet SSM's min TTC under 1.5 s, a post-encroachment time under 1 s or the footprints within "
+             "the near-miss gap; the safety-weighted score is the driving score x 0.775 for one "
+             "(v2vsim/control/score.py)."
              + driven_note(meta), ""]
     for b in sorted(bs, key=lambda b: b.scope == ALL, reverse=True):
         order = sorted(b.alone, key=lambda m: -(b.alone[m]["driving_score"].mean
                                                  if b.alone[m]["driving_score"] else -1.0))
         lines += [f"## {'Overall' if b.scope == ALL else 'Family ' + b.scope} ({b.episodes} episodes)", "",
-                  "| method | driving score | success | collision rate | efficiency | vehicle IoU | critical detected |"
-                  " critical lead (s) | score - none | success - none | collisions - none |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|"]
+                  "| method | driving score | success | collision rate | close-call rate | safety score | efficiency |"
+                  " vehicle IoU | critical detected | critical lead (s) | score - none | success - none |"
+                  " collisions - none | close calls - none | safety - none |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for m in order:
             a, v = b.alone[m], b.versus_none.get(m, {})
             lines.append(f"| {m} | {cell(a['driving_score'])} | {cell(a['success'])} | {cell(a['collision'])} | "
+                         f"{cell(a['close_call'])} | {cell(a['safety_score'])} | "
                          f"{cell(a['efficiency'])} | {cell(a['iou_vehicle'])} | {cell(a['critical_detected'])} | "
                          f"{cell(a['critical_lead_s'])} | "
                          + " | ".join(cell(v[k].diff, True) if k in v else "-"
-                                      for k in ("driving_score", "success", "collision")) + " |")
+                                      for k in ("driving_score", "success", "collision", "close_call",
+                                                "safety_score")) + " |")
         lines.append("")
         if per_family and b.scope in per_family:
             lines += ["Per configuration, success / collision rate over the seeds:", "",

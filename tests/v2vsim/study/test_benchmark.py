@@ -308,6 +308,19 @@ def test_the_critical_actor_columns_become_leaderboard_measures() -> None:
     assert got[2]["critical_detected"] is None and got[2]["critical_lead_s"] is None
 
 
+def test_close_calls_and_the_safety_score_come_from_the_row_or_from_its_ssm_figures() -> None:
+    base = {"control.method": "none", "seed": 0, "method": "none", "status": "complete", "driving_method": "none",
+            "driving_driving_score": 1.0, "driving_success": 1, "driving_collisions": 0, "driving_near_misses": 0}
+    rows = [{**base, "seed": 0, "driving_close_calls": 1, "driving_safety_score": 0.7746},  # written by the ego
+            {**base, "seed": 1, "driving_min_ttc_s": 2.1, "driving_min_pet_s": 0.9},  # before the fields: PET 0.9 s
+            {**base, "seed": 2, "driving_min_ttc_s": 2.1, "driving_min_pet_s": 1.4, "driving_pet_s": 1.2},
+            {**base, "seed": 3, "driving_collisions": 1, "driving_driving_score": 0.6, "driving_min_ttc_s": 0.0}]
+    eps = episodes_of("f", {"grid": [{"key": "control.method"}], "rows": rows})
+    got = {e.seed: (runs["none"]["close_call"], runs["none"]["safety_score"]) for e, runs in eps.items()}
+    assert got[0] == (1.0, 0.7746) and got[2] == (0.0, 1.0) and got[3] == (0.0, 0.6)
+    assert got[1][0] == 1.0 and got[1][1] == pytest.approx(0.7746, abs=1e-4)
+
+
 def test_auc_is_the_chance_a_success_outscores_a_failure() -> None:
     assert auc([0.9, 0.8, 0.1, 0.2], [True, True, False, False]) == 1.0
     assert auc([0.1, 0.2, 0.9, 0.8], [True, True, False, False]) == 0.0
