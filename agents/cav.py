@@ -23,7 +23,7 @@ from agents.bus import DRIVER_GRACE_S, START_TIMEOUT_S, Bus
 from agents.lifecycle import receive_bound, run_agent
 from agents.timing import StageTimer, write_timing
 from agents.worlds import WorldQueue, world_window
-from v2vsim.comm.codec import Message, encode
+from v2vsim.comm.codec import EVIDENCE, Message, encode
 from v2vsim.comm.control import DRIVER
 from v2vsim.comm.misbehaviour import Sent, active, tell
 from v2vsim.comm.share import feature_message
@@ -36,6 +36,7 @@ from v2vsim.perception.device import prepare as prepare_device
 from v2vsim.perception.device import resolve_device
 from v2vsim.perception.encode import body_frame_points, late_outputs, pooled_confidence
 from v2vsim.perception.encode import encode as encode_features
+from v2vsim.perception.evidence import evidence_grid, pack_array
 from v2vsim.perception.plan import plan_models
 from v2vsim.perception.precision import resolve as resolve_precision
 from v2vsim.recording.scan import encode_scan, world_points
@@ -153,18 +154,23 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
                 feats, pose, maps, boxes = sent.features, sent.pose, sent.maps, sent.boxes
             stamp = {"run_id": args.run_id, "sender_id": me, "frame": world.frame, "capture_time": world.time,
                      "sender_pose": pose, "compression": sc.comm.compression}
+            ev: dict = {}
+            if sc.defence.evidence and lidar:  # what its rays establish, sent with what it claims (signed with it)
+                with timer.stage("evidence"):
+                    ev = {EVIDENCE: pack_array(evidence_grid(sf.lidar.points, sc.sensors.lidar.height_m,
+                                                             encoder.bev_size_m, encoder.out_cells))}
             with timer.stage("comm"):
                 labelled = {**stamp, "space": space} if space else stamp
                 bus.put("features", encode(feature_message(compress(compressor, feats), confidence, share, labelled,
-                                                           ratio), key))
+                                                           ratio, ev), key))
                 if compressor is not None and me in args.egos:  # its ego fuses its own map uncompressed
                     bus.put("own", encode(Message(kind="features", payload=feats, **labelled), key))
                 if "early" in methods and lidar:
                     bus.put("points", encode(Message(kind="points", payload=body_frame_points(sf, sc), **stamp), key))
             if late:
                 with timer.stage("comm"):
-                    bus.put("outputs", encode(Message(kind="outputs", payload=maps, extras={"boxes": boxes}, **stamp),
-                                              key))
+                    bus.put("outputs", encode(Message(kind="outputs", payload=maps, extras={"boxes": boxes, **ev},
+                                                      **stamp), key))
             if sc.output.rerun:
                 with timer.stage("recording"):
                     bus.put("scan", _scan(world, actor.pose, sf, scene, args))

@@ -15,8 +15,9 @@ Layout (little endian), version 1::
             the CAV agent the sender id names, checked against the run's trust list
 
 Array 0 is the message's `payload`; the others are `extras` (late-fusion boxes, say).
-Dtype codes: 1 float16, 2 float32, 3 uint16, 4 uint32. The payload always has its kind's
-dtype; an extra may have any of them (the integer ones carry cell indices).
+Dtype codes: 1 float16, 2 float32, 3 uint16, 4 uint32, 5 uint8. The payload always has its kind's
+dtype; an extra may have any of them: uint16/32 only as the cell indices ("cells"), uint8 only as the
+sender's packed free-space evidence ("evidence", v2vsim.perception.evidence).
 
 Kinds and their primary payload:
   * "features": BEV feature map (C, H, W), float16 on the wire.
@@ -67,6 +68,7 @@ from v2vsim.comm.message import (
     CELLS,
     COMPRESSION_CODES,
     DTYPE_CODES,
+    EVIDENCE,
     FLAG_IDENTITY,
     FLAG_SIGNED,
     FLAG_SPACE,
@@ -93,7 +95,7 @@ from v2vsim.comm.signing import Signer, authenticated_header, check_signer, sign
 from v2vsim.comm.wire_io import U8, U16, U32, all_finite, utf8
 
 __all__ = [
-    "CELLS", "COMPRESSION_CODES", "DTYPE_CODES", "FLAG_IDENTITY", "FLAG_SIGNED", "FLAG_SPACE", "KIND_CODES",
+    "CELLS", "COMPRESSION_CODES", "DTYPE_CODES", "EVIDENCE", "FLAG_IDENTITY", "FLAG_SIGNED", "FLAG_SPACE", "KIND_CODES",
     "KIND_DTYPES",
     "MAGIC", "MAX_NDIM", "MAX_PAYLOAD_BYTES", "REASONS", "SIG_LEN", "TAG_LEN", "VERSION", "AtMost", "Compression",
     "Dim", "Kind", "KindSpec", "Message", "RejectedMessage", "ShapeSpec", "Signer", "check_arrival", "decode",
@@ -104,8 +106,8 @@ def encode(msg: Message, key: Signer | None = None, *, check_finite: bool = True
     """Serialise `msg` (casting the payload to its kind's wire dtype); sign it when `key` is given (an
     Identity signs as its own process, which must be the CAV agent of msg.sender_id).
 
-    Extras keep a wire dtype (float16/32, uint16/32); any other dtype is cast to float32, so
-    indices must already be uint16/uint32 (v2vsim.comm.sparse.index_dtype) to stay integers.
+    Extras keep a wire dtype (float16/32, uint16/32; uint8 only as "evidence"); any other dtype is cast to
+    float32, so indices must already be uint16/uint32 (v2vsim.comm.sparse.index_dtype) to stay integers.
 
     Raises ValueError for a message that the receiver would reject anyway (non-finite values
     after the cast, an unknown kind); `check_finite=False` is for tests that need such bytes.
@@ -125,7 +127,7 @@ def encode(msg: Message, key: Signer | None = None, *, check_finite: bool = True
         if not name:
             raise ValueError("extra arrays need a non-empty name")
         a = np.asarray(arr)
-        if a.dtype.name not in DTYPE_CODES:
+        if a.dtype.name not in DTYPE_CODES or (a.dtype.name == "uint8") != (name == EVIDENCE):
             with np.errstate(over="ignore"):
                 a = a.astype(np.float32)
         arrays.append((name, a))
@@ -291,6 +293,9 @@ def _decode(data: bytes | bytearray | memoryview, key: Signer | None, known_send
         if (kspec is not None and i > 0 and dtype.name in _INDEX_DTYPES
                 and not (kspec.cells is not None and name == CELLS)):
             raise RejectedMessage("unknown_dtype", f"{kind} extra {name!r} must be float, got {dtype.name}")
+        if i > 0 and (dtype.name == "uint8") != (name == EVIDENCE):
+            raise RejectedMessage("unknown_dtype", f"{kind} extra {name!r} of dtype {dtype.name}: only "
+                                                   f"{EVIDENCE!r} is uint8, and it is nothing else")
         if ndim > MAX_NDIM:
             raise RejectedMessage("shape_mismatch", f"ndim {ndim}")
         shape = tuple(r.unpack(struct.Struct(f"<{ndim}I")))

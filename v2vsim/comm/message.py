@@ -30,7 +30,7 @@ KIND_CODES: dict[str, int] = {"features": 1, "points": 2, "outputs": 3, "sparse"
 _KIND_NAMES = {v: k for k, v in KIND_CODES.items()}
 COMPRESSION_CODES: dict[str, int] = {"none": 0, "zlib": 1}
 _COMPRESSION_NAMES = {v: k for k, v in COMPRESSION_CODES.items()}
-DTYPE_CODES: dict[str, int] = {"float16": 1, "float32": 2, "uint16": 3, "uint32": 4}
+DTYPE_CODES: dict[str, int] = {"float16": 1, "float32": 2, "uint16": 3, "uint32": 4, "uint8": 5}
 _DTYPE_NAMES = {v: k for k, v in DTYPE_CODES.items()}
 _INDEX_DTYPES = frozenset({"uint16", "uint32"})
 # The wire dtype of each kind's primary payload; extras may have any dtype of DTYPE_CODES.
@@ -38,6 +38,8 @@ KIND_DTYPES: dict[str, str] = {"features": "float16", "points": "float32", "outp
                                "sparse": "float16"}
 CELLS = "cells"
 """The name of the index extra checked against KindSpec.cells (the "sparse" kind's cell indices)."""
+EVIDENCE = "evidence"
+"""The one extra that is raw bytes (uint8): a sender's packed free-space evidence (v2vsim.perception.evidence)."""
 
 # The fixed header of v2vsim.comm.codec's layout; its size bounds KindSpec.max_message_bytes.
 _FIXED = struct.Struct("<4sBBBBHHIddddd")

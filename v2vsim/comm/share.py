@@ -16,20 +16,22 @@ from v2vsim.comm.sparse import gather, scatter, select_cells, sparse_is_smaller
 
 
 def feature_message(payload: np.ndarray, confidence: np.ndarray | None, fraction: float, stamp: dict,
-                    channel_compression: int = 1) -> Message:
+                    channel_compression: int = 1, extras: dict[str, np.ndarray] | None = None) -> Message:
     """The message carrying `fraction` of `payload` [C', F, F] (already channel-compressed).
 
     confidence: [F, F] the sender ranks its cells by (needed when fraction < 1). stamp: the Message
     fields every kind shares (run_id, sender_id, frame, capture_time, sender_pose, compression).
     fraction 0 is an empty sparse message: in a lockstep run it tells the receiver that frame k has
-    nothing for it."""
+    nothing for it. extras: sent beside the map either way (the sender's free-space evidence)."""
     c, f, _ = payload.shape
+    extras = dict(extras or {})
     if fraction >= 1.0 or (confidence is not None and not sparse_is_smaller(round(fraction * f * f), f * f, c)):
-        return Message(kind="features", payload=payload, channel_compression=channel_compression, **stamp)
+        return Message(kind="features", payload=payload, extras=extras, channel_compression=channel_compression,
+                       **stamp)
     if confidence is None:
         raise ValueError("a share below 1 needs the sender's confidence map to rank its cells")
     cells = select_cells(confidence, fraction)
-    return Message(kind="sparse", payload=gather(payload, cells), extras={"cells": cells},
+    return Message(kind="sparse", payload=gather(payload, cells), extras={"cells": cells, **extras},
                    channel_compression=channel_compression, **stamp)
 
 

@@ -27,9 +27,10 @@ from dataclasses import dataclass
 
 from models.heads import MAX_DETECTIONS
 from models.presets import get_preset
-from v2vsim.comm.codec import CELLS, AtMost, KindSpec, Message, RejectedMessage, check_arrival, decode
+from v2vsim.comm.codec import CELLS, EVIDENCE, AtMost, KindSpec, Message, RejectedMessage, check_arrival, decode
 from v2vsim.comm.stats import CommStats
 from v2vsim.config import Scenario
+from v2vsim.perception.evidence import packed_size
 
 MAX_BOXES = MAX_DETECTIONS
 """Late fusion ships at most this many boxes per CAV: models.heads.decode_detections' top_k."""
@@ -56,12 +57,15 @@ def ego_wire_spec(sc: Scenario, encoder_out_channels: int, encoder_out_cells: in
     r = ratio if ratio is not None else (sc.comm.channel_compression or 1)
     s = get_preset(sc.perception.preset).seg_cells  # the late outputs' maps: the heads' grid, not 8 F
     sweep = sc.sensors.lidar.channels * sc.sensors.lidar.points_per_channel
+    # defence.evidence: a LiDAR sender's free-space evidence beside its map (optional: a camera CAV has no rays)
+    ev = {EVIDENCE: (packed_size(f),)} if sc.defence.evidence else {}
     return {
-        "features": KindSpec((c // r, f, f), channel_compression=r, spaces=spaces),
+        "features": KindSpec((c // r, f, f), extras=ev, optional=frozenset(ev), channel_compression=r, spaces=spaces),
         "points": KindSpec((AtMost(sweep), 4)),
-        "outputs": KindSpec((3, s, s), extras={"boxes": (AtMost(MAX_BOXES), BOX_FIELDS)}),
-        "sparse": KindSpec((AtMost(f * f), c // r), extras={CELLS: (AtMost(f * f),)}, channel_compression=r,
-                           cells=f * f, spaces=spaces),
+        "outputs": KindSpec((3, s, s), extras={"boxes": (AtMost(MAX_BOXES), BOX_FIELDS), **ev},
+                            optional=frozenset(ev)),
+        "sparse": KindSpec((AtMost(f * f), c // r), extras={CELLS: (AtMost(f * f),), **ev},
+                           optional=frozenset(ev), channel_compression=r, cells=f * f, spaces=spaces),
     }
 
 

@@ -61,6 +61,16 @@ def _mark(grid: np.ndarray, x: np.ndarray, y: np.ndarray, half: float, cell: flo
     grid[row[ok], col[ok]] = value
 
 
+def packed_size(cells: int) -> int:
+    """Bytes of a packed `cells` x `cells` grid: two bit planes."""
+    return 2 * ((cells * cells + 7) // 8)
+
+
+def pack_array(grid: np.ndarray) -> np.ndarray:
+    """`pack` as the uint8 array a message's "evidence" extra carries."""
+    return np.frombuffer(pack(grid), dtype=np.uint8)
+
+
 def pack(grid: np.ndarray) -> bytes:
     """Two bit planes (free, occupied), each np.packbits of the grid row by row: 2 x cells^2 / 8 bytes."""
     return np.packbits(grid == FREE).tobytes() + np.packbits(grid == OCCUPIED).tobytes()
@@ -68,7 +78,7 @@ def pack(grid: np.ndarray) -> bytes:
 
 def unpack(data: bytes, cells: int) -> np.ndarray:
     """The grid `pack` packed; ValueError when `data` is not two planes of `cells` x `cells`."""
-    plane = (cells * cells + 7) // 8
+    plane = packed_size(cells) // 2
     if len(data) != 2 * plane:
         raise ValueError(f"evidence: {len(data)} bytes, expected {2 * plane} for a {cells} x {cells} grid")
     bits = np.unpackbits(np.frombuffer(data, dtype=np.uint8)).reshape(2, plane * 8)[:, :cells * cells]

@@ -441,6 +441,20 @@ def test_integer_extras_only_as_cells() -> None:
     assert reason(bytes(data), spec=SPARSE) == "unknown_dtype"
 
 
+def test_evidence_travels_as_bytes_and_nothing_else_is_bytes() -> None:
+    """A sender's packed free-space evidence (uint8) beside its map: optional, sized, and the only uint8 extra."""
+    ev = np.arange(32, dtype=np.uint8)
+    spec = {"features": KindSpec((16, 8, 8), extras={"evidence": (32,)}, optional=frozenset({"evidence"}))}
+    got = decode(encode(features(extras={"evidence": ev})), spec=spec)
+    assert got.extras["evidence"].dtype == np.uint8 and np.array_equal(got.extras["evidence"], ev)
+    assert decode(encode(features()), spec=spec).extras == {}  # optional
+    assert reason(encode(features(extras={"evidence": ev[:31]})), spec=spec) == "shape_mismatch"
+    as_bytes = {"features": KindSpec((16, 8, 8), extras={"evidencX": (32,)}, optional=frozenset({"evidencX"}))}
+    assert decode(encode(features(extras={"evidencX": ev})), spec=as_bytes).extras["evidencX"].dtype == np.float32
+    forged = encode(features(extras={"evidence": ev})).replace(b"evidence", b"evidencX")  # bytes by another name
+    assert reason(forged, spec=as_bytes) == "unknown_dtype"
+
+
 def test_kindspec_cells_needs_a_required_cells_extra() -> None:
     needs = re.escape("KindSpec(cells=4) needs cells >= 1 and a required 'cells' extra")
     for bad in (dict(extras={}), dict(extras={"cells": (AtMost(4),)}, optional=frozenset({"cells"})),

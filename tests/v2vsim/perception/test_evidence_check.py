@@ -1,0 +1,72 @@
+"""The free-space checks (v2vsim/perception/evidence_check.py) on hand-made grids: a phantom in space another agent
+sees free, a removed car the ego sees, a removed car only the liar's own rays hit, and a liar whose evidence agrees
+with its lie where nobody else sees (not caught, by design)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from v2vsim.perception.evidence import FREE, OCCUPIED, UNKNOWN
+from v2vsim.perception.evidence_check import check_evidence
+
+SIZE, F, G = 100.0, 64, 128
+CAV1 = np.array([20.0, 0.0, 0.0], np.float32)  # 20 m ahead of the ego, same heading
+EGO = np.zeros(3, np.float32)
+
+
+def _rows_cols(cells: int, x0: float, x1: float, y0: float, y1: float) -> tuple[slice, slice]:
+    """The cells of a body-frame box x0..x1 (forward), y0..y1 (left) on a cells x cells grid."""
+    c = SIZE / cells
+    return (slice(int((SIZE / 2 - x1) // c), int(np.ceil((SIZE / 2 - x0) / c))),
+            slice(int((SIZE / 2 - y1) // c), int(np.ceil((SIZE / 2 - y0) / c))))
+
+
+def _evidence(free: tuple | None = None, occupied: tuple | None = None) -> np.ndarray:
+    g = np.full((F, F), UNKNOWN, np.uint8)
+    if free:
+        g[_rows_cols(F, *free)] = FREE
+    if occupied:
+        g[_rows_cols(F, *occupied)] = OCCUPIED
+    return g
+
+
+def _vehicle(*boxes: tuple) -> np.ndarray:
+    v = np.zeros((G, G), np.float32)
+    for b in boxes:
+        v[_rows_cols(G, *b)] = 1.0
+    return v
+
+
+def test_a_phantom_where_the_ego_sees_free_road_is_caught_and_a_real_car_is_not() -> None:
+    ego_ev = _evidence(free=(0.0, 45.0, -8.0, 8.0))  # the ego's rays pass down the open road ahead
+    phantom = check_evidence({"ego": _vehicle(), "cav1": _vehicle((7.7, 12.3, -1.0, 1.0))},  # a car at ego x = 30
+                             {"ego": ego_ev, "cav1": _evidence()}, {"ego": EGO, "cav1": CAV1}, SIZE, G)
+    assert phantom["cav1"].phantom_m2 > 6.0 and phantom["cav1"].witnessed_m2 > 6.0
+    # a real car there: the ego's rays stop at its rear face, nothing behind it is free
+    real_ev = _evidence(free=(0.0, 26.0, -8.0, 8.0), occupied=(27.0, 28.6, -1.0, 1.0))
+    honest = check_evidence({"ego": _vehicle((27.7, 32.3, -1.0, 1.0)), "cav1": _vehicle((7.7, 12.3, -1.0, 1.0))},
+                            {"ego": real_ev, "cav1": _evidence(occupied=(6.0, 8.0, -1.0, 1.0))},
+                            {"ego": EGO, "cav1": CAV1}, SIZE, G)
+    assert honest["cav1"].phantom_m2 == 0.0 and honest["ego"].phantom_m2 == 0.0
+
+
+def test_a_car_removed_where_the_ego_sees_it_is_caught() -> None:
+    car = (27.7, 32.3, 4.0, 6.0)  # ego frame; cav1 at x = 20 reaches it too (its rays stop on its side)
+    ego_ev = _evidence(free=(0.0, 26.0, 0.0, 8.0), occupied=(27.0, 29.0, 4.0, 6.0))
+    liar_ev = _evidence(free=(0.0, 6.0, 0.0, 8.0), occupied=(7.0, 9.0, 4.0, 6.0))  # honest rays, in its frame
+    v = check_evidence({"ego": _vehicle(car), "cav1": _vehicle()}, {"ego": ego_ev, "cav1": liar_ev},
+                       {"ego": EGO, "cav1": CAV1}, SIZE, G)
+    assert v["cav1"].removed_m2 > 2.0 and v["ego"].removed_m2 == 0.0
+
+
+def test_a_car_only_the_liar_sees_is_caught_by_its_own_rays_unless_it_lies_in_them_too() -> None:
+    road = np.zeros((G, G), bool)
+    road[_rows_cols(G, -50.0, 50.0, -4.0, 8.0)] = True  # the drivable area of the ego's map, ego frame
+    nobody = _evidence()  # the ego sees nothing there (a building between)
+    honest_rays = _evidence(occupied=(12.0, 14.0, 4.0, 6.0))
+    caught = check_evidence({"ego": _vehicle(), "cav1": _vehicle()}, {"ego": nobody, "cav1": honest_rays},
+                            {"ego": EGO, "cav1": CAV1}, SIZE, G, road_map=road)
+    assert caught["cav1"].unclaimed_m2 > 2.0
+    consistent = check_evidence({"ego": _vehicle(), "cav1": _vehicle()}, {"ego": nobody, "cav1": _evidence()},
+                                {"ego": EGO, "cav1": CAV1}, SIZE, G, road_map=road)
+    assert consistent["cav1"] == type(consistent["cav1"])(0.0, 0.0, 0.0, 0.0)  # by design: nobody else sees

@@ -1,0 +1,95 @@
+"""Claims against rays: each sender's vehicle map judged by the free-space evidence the agents send (issue 67 item 2).
+
+Collaborative Anomaly Detection's two checks (Zhang et al., USENIX Security 2024, Sec. 6), on the ego grid, with
+every agent's evidence (v2vsim/perception/evidence.py: occupied / free / unknown per cell from its own rays) and its
+single-agent vehicle map (its features decoded alone, as the consistency check decodes them) warped there by the
+pose it claims:
+
+    phantom_m2(s) = area where s claims a vehicle (p > 0.5), another agent's rays passed (free, away from any
+                    hit) and no other agent's rays were stopped (occupied): spoofing, a car put where others see
+                    through
+    removed_m2(s) = area where another agent sees a vehicle (its map p > 0.5 and its rays stopped there) and s's
+                    own rays reached the cell (free or occupied) but s claims nothing there (p < 0.25): removal
+    unclaimed_m2(s) = area of the drivable map where s's own rays were stopped and s claims nothing (p < 0.25):
+                    removal that no one else can see, told by the liar's own evidence against its own map
+
+Never one agent's evidence for its own claims: phantom and removed ask the others, and unclaimed can only convict
+(a liar that lies in its evidence too, consistently, escapes it, and is caught only where another agent sees;
+a lie about a place only the liar sees cannot be caught by anyone). The ego is one of the "others" for each
+sender. Thresholds and their calibration: DefenceConfig (`defence.phantom_m2`, ...).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from models.warp import warp_to_ego
+from v2vsim.perception.evidence import FREE, OCCUPIED
+
+CLAIM, NO_CLAIM = 0.5, 0.25  # a vehicle claimed above CLAIM; nothing claimed below NO_CLAIM (between: unsure)
+
+
+@dataclass(frozen=True)
+class EvidenceVerdict:
+    """One sender's claims against the agents' rays at one frame (areas in m^2)."""
+
+    phantom_m2: float
+    removed_m2: float
+    unclaimed_m2: float
+    witnessed_m2: float  # its claimed vehicle area that another agent's rays reached (how much could be checked)
+
+
+def _planes(evidence: np.ndarray, cells: int) -> torch.Tensor:
+    """[F, F] uint8 evidence -> [3, G, G] float (clear, free, occupied) at the comparison grid, nearest cells.
+    Clear: free with the 3 x 3 cells around free too (a ray's last free cell can reach into the car it then hit, an
+    evidence cell being 1.56 m, and an honest map's blur would count there as a phantom)."""
+    ev = torch.from_numpy(np.asarray(evidence))
+    free = (ev == FREE).float()[None, None]  # [1, 1, F, F]
+    clear = 1.0 - F.max_pool2d(1.0 - free, 3, stride=1, padding=1)  # free eroded by one cell
+    planes = torch.cat([clear[0], free[0], (ev == OCCUPIED).float()[None]])[None]  # [1, 3, F, F]
+    return F.interpolate(planes, size=(cells, cells), mode="nearest")[0]
+
+
+def check_evidence(vehicle: dict[str, np.ndarray], evidence: dict[str, np.ndarray], poses: dict[str, np.ndarray],
+                   size_m: float, cells: int, road_map: np.ndarray | None = None) -> dict[str, EvidenceVerdict]:
+    """Per agent with both a vehicle map and evidence: its verdict against every other such agent.
+
+    vehicle: agent -> [S, S] vehicle probability in its own frame; evidence: agent -> [F, F] uint8 in its own
+    frame; poses: agent -> (dx, dy, dyaw) it claims in the ego frame (the ego (0, 0, 0)); cells: the comparison
+    grid G; road_map: the drivable area of the ego's HD map on its grid (bool, any size; None: no unclaimed)."""
+    names = [s for s in vehicle if s in evidence and s in poses]
+    if not names:
+        return {}
+    veh = torch.from_numpy(np.stack([np.asarray(vehicle[s], np.float32) for s in names]))[:, None]  # [L, 1, S, S]
+    if veh.shape[-1] != cells:
+        veh = F.adaptive_avg_pool2d(veh, cells)
+    ev = torch.stack([_planes(evidence[s], cells) for s in names])  # [L, 3, G, G]
+    rel = torch.from_numpy(np.stack([np.asarray(poses[s], np.float32) for s in names]))  # [L, 3]
+    v, _ = warp_to_ego(veh, rel, size_m)  # [L, 1, G, G]
+    e, _ = warp_to_ego(ev, rel, size_m, mode="nearest")  # [L, 3, G, G]
+    v, clear, free, occ = v[:, 0], e[:, 0] > 0.5, e[:, 1] > 0.5, e[:, 2] > 0.5  # [L, G, G] each
+    seen = occ & (v > CLAIM)  # a vehicle an agent both maps and stops its rays on
+    road = None
+    if road_map is not None:
+        rm = torch.from_numpy(np.asarray(road_map, np.float32))[None, None]
+        road = F.adaptive_avg_pool2d(rm, cells)[0, 0] > 0.5  # [G, G]
+    cell_m2 = (size_m / cells) ** 2
+    out: dict[str, EvidenceVerdict] = {}
+    for i, s in enumerate(names):
+        others = [j for j in range(len(names)) if j != i]
+        if not others:
+            continue
+        o_clear, o_occ, o_seen = clear[others].any(0), occ[others].any(0), seen[others].any(0)
+        claim, none = v[i] > CLAIM, v[i] < NO_CLAIM
+        reached = free[i] | occ[i]
+        phantom = claim & o_clear & ~o_occ
+        removed = o_seen & reached & none
+        unclaimed = (occ[i] & none & road) if road is not None else torch.zeros_like(claim)
+        out[s] = EvidenceVerdict(round(float(phantom.sum()) * cell_m2, 2), round(float(removed.sum()) * cell_m2, 2),
+                                 round(float(unclaimed.sum()) * cell_m2, 2),
+                                 round(float((claim & (free[others].any(0) | o_occ)).sum()) * cell_m2, 2))
+    return out
