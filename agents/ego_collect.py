@@ -13,11 +13,12 @@ import numpy as np
 
 from agents.args import AgentArgs
 from agents.ego_mailbox import SIDE_KINDS, Mailbox
-from v2vsim.comm.codec import Message
+from v2vsim.comm.codec import EVIDENCE, Message
 from v2vsim.comm.inbox import Inbox, distance
 from v2vsim.comm.share import dense_payload
 from v2vsim.comm.stats import CommStats
 from v2vsim.comm.wire_spec import EgoDecoder, message_kind
+from v2vsim.perception.evidence import unpack
 from v2vsim.perception.fuse import FusionInputs
 from v2vsim.perception.motion import OutputMessage, compensate_outputs
 from v2vsim.recording.scan import Scan, decode_scan
@@ -95,6 +96,10 @@ def collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str], 
             if i not in posed:  # rel_poses: the first kind's (features come first)
                 rel[i] = by_kind[kind][i]
                 posed.add(i)
+            if EVIDENCE in msg.extras and s not in inp.evidence:
+                grid = _evidence_of(msg, decoder.spec["features"].payload[-1])
+                if grid is not None:
+                    inp.evidence[s] = grid
             if kind == "features":
                 # float16 [C/r, F, F] (a sparse message scattered back); decompress() makes it float32 [C, F, F]
                 inp.features[s] = dense_payload(msg, decoder.spec["features"].payload)
@@ -122,6 +127,15 @@ def collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str], 
             if msg is not None and msg.sender_id == me and msg.frame == k:
                 inp.own = msg.payload
     return inp, visible, scans
+
+
+def _evidence_of(msg: Message, cells: int) -> np.ndarray | None:
+    """A message's free-space evidence as a grid; None for a cell both free and occupied (no sender's honest rays
+    make one: such evidence is worth nothing, and the claims it came with are judged without it)."""
+    try:
+        return unpack(msg.extras[EVIDENCE].tobytes(), cells)
+    except ValueError:
+        return None
 
 
 def _moved_outputs(outputs: tuple[np.ndarray, np.ndarray], msg: Message, pose: tuple[float, ...],

@@ -12,7 +12,8 @@ from torch import nn
 
 from v2vsim.config.schema import Scenario
 from v2vsim.config.schema_misbehaviour import DefenceConfig
-from v2vsim.perception.consistency import Disagreement, check_frame, decode_alone, without
+from v2vsim.perception.consistency import MAX_CELLS, VEHICLE, Disagreement, check_frame, decode_alone, without
+from v2vsim.perception.evidence_check import check_evidence
 from v2vsim.perception.fuse import FusionInputs
 from v2vsim.perception.precision import Precision
 
@@ -26,6 +27,9 @@ class SenderCheck:
     precision: Precision = "fp32"
     # sender -> per frame compared: (frame, road, vehicle_m2, shared_m2, flagged, road_corr, road_vs_map)
     frames: dict[str, list[tuple]] = field(default_factory=dict)
+    # defence.evidence: sender -> per frame with evidence (frame, phantom_m2, removed_m2, unclaimed_m2, witnessed_m2),
+    # its claims against the agents' rays (v2vsim/perception/evidence_check.py): recorded, not yet judged by
+    evidence: dict[str, list[tuple]] = field(default_factory=dict)
     excluded: int = 0  # sender-frames the defence fused without
     excluded_unjudged: int = 0  # ... and, with defence.unjudged: exclude, those it had no evidence on
     cfg: DefenceConfig = field(init=False)  # the thresholds this run judges by
@@ -42,7 +46,10 @@ class SenderCheck:
         ego = inp.senders[0]
         scores: dict[str, list[Disagreement]] = {}
         hits: set[str] = set()
-        for kind, maps in self._maps(inp).items():  # flagged on any kind it sent
+        all_maps = self._maps(inp)
+        if cfg.evidence and inp.evidence:
+            self._record_evidence(k, inp, all_maps, road_map)
+        for kind, maps in all_maps.items():  # flagged on any kind it sent
             poses = inp.poses_by_kind.get(kind, inp.rel_poses)
             rel = {s: poses[inp.senders.index(s)] for s in maps}
             frame_scores, frame_flagged = check_frame(maps, rel, ego, self.sc.bev.size_m, cfg, road_map)
@@ -70,6 +77,18 @@ class SenderCheck:
             self.excluded_unjudged += len(drop - flagged)
             return without(inp, drop), flagged
         return inp, flagged
+
+    def _record_evidence(self, k: int, inp: FusionInputs, maps: dict[str, dict[str, np.ndarray]],
+                         road_map: np.ndarray | None) -> None:
+        """Each sender's vehicle claims (its features decoded alone, else its outputs) against the agents' rays."""
+        vehicle = {s: m[VEHICLE] for kind in ("outputs", "features") for s, m in maps.get(kind, {}).items()}
+        kind_of = {s: kind for kind in ("outputs", "features") for s in maps.get(kind, {})}
+        poses = {s: inp.poses_by_kind.get(kind_of[s], inp.rel_poses)[inp.senders.index(s)] for s in vehicle}
+        verdicts = check_evidence(vehicle, inp.evidence, poses, self.sc.bev.size_m, MAX_CELLS, road_map)
+        for s, v in verdicts.items():
+            if s != inp.senders[0]:
+                self.evidence.setdefault(s, []).append((k, v.phantom_m2, v.removed_m2, v.unclaimed_m2,
+                                                        v.witnessed_m2))
 
     def _maps(self, inp: FusionInputs) -> dict[str, dict[str, np.ndarray]]:
         """Per message kind, each sender's single-agent maps [3, S, S]: its features decoded alone; late fusion's
@@ -109,4 +128,16 @@ class SenderCheck:
                 "min_frames": cfg.min_frames, "flagged": {s: {"frames": n, "of": m}
                                                           for s, (n, m) in self.flagged_counts().items()},
                 "excluded_sender_frames": self.excluded, "unjudged": cfg.unjudged,
-                "excluded_unjudged_sender_frames": self.excluded_unjudged, "senders": senders}
+                "excluded_unjudged_sender_frames": self.excluded_unjudged, "senders": senders,
+                **({"evidence": self._evidence_json()} if cfg.evidence else {})}
+
+    def _evidence_json(self) -> dict:
+        """Per sender: frames with evidence, the largest phantom / removed / unclaimed area, the per-frame rows
+        (frame, phantom_m2, removed_m2, unclaimed_m2, witnessed_m2)."""
+        out = {}
+        for s, rows in sorted(self.evidence.items()):
+            a = np.array([r[1:] for r in rows], dtype=float)
+            out[s] = {"frames": len(rows), **{f"max_{name}": round(float(a[:, i].max()), 2)
+                                              for i, name in enumerate(("phantom_m2", "removed_m2", "unclaimed_m2"))},
+                      "per_frame": [list(r) for r in rows]}
+        return out

@@ -39,7 +39,8 @@ class DefenceConfig:
 
     detect: bool = False  # score and flag senders each frame (one single-agent decoding per sender and frame)
     # every LiDAR CAV sends what its rays establish, occupied / free / unknown per cell of its feature grid, with
-    # its feature and output messages (1 KB at 64 x 64; v2vsim/perception/evidence.py, issue 67)
+    # its feature and output messages (1 KB at 64 x 64; v2vsim/perception/evidence.py, issue 67), and the ego
+    # records each sender's claims against the agents' rays (v2vsim/perception/evidence_check.py; implies detect)
     evidence: bool = False
     exclude: bool = False  # the defence: every method fuses without the senders flagged at that frame (implies detect)
     near_m: float = _f(30.0, "> 0 (m: a cell is compared where the sender and another agent are within this of it)",
@@ -60,7 +61,8 @@ class DefenceConfig:
 
     @property
     def on(self) -> bool:
-        return self.detect or self.exclude
+        """The ego checks its senders (evidence implies detect)."""
+        return self.detect or self.exclude or self.evidence
 
     def road_limit(self, cameras: bool) -> float:
         """road_threshold as set, or the calibrated default: camera BEV road maps are far less consistent from

@@ -209,5 +209,6 @@ def without(inp: FusionInputs, senders: set[str]) -> FusionInputs:
 
     return dataclasses.replace(
         inp, features=keep(inp.features), points=keep(inp.points), outputs=keep(inp.outputs),
+        evidence=keep(inp.evidence),
         feature_ages=keep(inp.feature_ages), previous_features=keep(inp.previous_features),
         extrapolated={m: keep(t) for m, t in inp.extrapolated.items()})

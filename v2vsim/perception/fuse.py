@@ -37,6 +37,9 @@ class FusionInputs:
     own: np.ndarray | None = None
     points: dict[str, np.ndarray] = field(default_factory=dict)  # sender -> [P, 4] body frame
     outputs: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # sender -> (maps, boxes)
+    # defence.evidence: what each LiDAR sender's rays established, sender -> [F, F] uint8 UNKNOWN / FREE / OCCUPIED
+    # in its own frame (v2vsim.perception.evidence), from its feature message, else its outputs message
+    evidence: dict[str, np.ndarray] = field(default_factory=dict)
     # Learned latency compensation (comm.compensation, v2vsim.perception.extrapolate): per neighbour whose
     # features are late, the age (s) of its message at the fused frame's instant and its message before
     # (features, that capture's (dx, dy, dyaw) in the newer capture's frame, seconds between the two) ...
