@@ -148,17 +148,18 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
                     if share < 1.0:
                         confidence = pooled_confidence(maps[0], feats.shape[-1])
             pose = actor.pose.as_tuple()
-            lies = active(sc.misbehaviour, me, world.frame)
-            if lies:  # an attacked run (misbehaviour): what it sends is false, its own perception stays honest
-                sent = lie(Sent(feats, pose, maps, boxes), lies, world, me, seen_ids, sc, told)
-                feats, pose, maps, boxes = sent.features, sent.pose, sent.maps, sent.boxes
-            stamp = {"run_id": args.run_id, "sender_id": me, "frame": world.frame, "capture_time": world.time,
-                     "sender_pose": pose, "compression": sc.comm.compression}
-            ev: dict = {}
+            grid = None
             if sc.defence.evidence and lidar:  # what its rays establish, sent with what it claims (signed with it)
                 with timer.stage("evidence"):
-                    ev = {EVIDENCE: pack_array(evidence_grid(sf.lidar.points, sc.sensors.lidar.height_m,
-                                                             encoder.bev_size_m, encoder.out_cells))}
+                    grid = evidence_grid(sf.lidar.points, sc.sensors.lidar.height_m, encoder.bev_size_m,
+                                         encoder.out_cells)
+            lies = active(sc.misbehaviour, me, world.frame)
+            if lies:  # an attacked run (misbehaviour): what it sends is false, its own perception stays honest
+                sent = lie(Sent(feats, pose, maps, boxes, grid), lies, world, me, seen_ids, sc, told)
+                feats, pose, maps, boxes, grid = sent.features, sent.pose, sent.maps, sent.boxes, sent.evidence
+            stamp = {"run_id": args.run_id, "sender_id": me, "frame": world.frame, "capture_time": world.time,
+                     "sender_pose": pose, "compression": sc.comm.compression}
+            ev = {} if grid is None else {EVIDENCE: pack_array(grid)}
             with timer.stage("comm"):
                 labelled = {**stamp, "space": space} if space else stamp
                 bus.put("features", encode(feature_message(compress(compressor, feats), confidence, share, labelled,

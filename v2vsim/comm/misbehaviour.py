@@ -19,10 +19,17 @@ score in its body frame) and on the pose every message claims:
                     probability 1 there, a box with score 0.9; skipped (counted) on a frame where it sees none
 
 Early fusion's points lie only in the pose (a point-level lie is not built).
+
+The free-space evidence (defence.evidence) stays honest unless the lie says `evidence: consistent`: an attacker
+that knows the defence makes its rays agree with its claims. flip mirrors the evidence; zero makes it all unknown;
+remove_vehicle marks the hidden cells unknown (as if it never saw there: "free" would contradict anyone who sees
+the car, "occupied" its own empty map); add_vehicle marks the phantom's cells occupied; scale and pose leave it
+as it is (its claims are in its own frame either way).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -31,6 +38,7 @@ import numpy as np
 
 from v2vsim.config.schema_misbehaviour import Lie
 from v2vsim.evaluation.gt import rasterise_boxes
+from v2vsim.perception.evidence import OCCUPIED, UNKNOWN
 from v2vsim.world.geometry import BevGrid, Pose, body_to_world, world_to_body, wrap_angle
 
 MARGIN_M = 1.0  # a removed vehicle's footprint is grown by this on every side: its features spread past its body
@@ -46,6 +54,7 @@ class Sent:
     pose: tuple[float, float, float, float]  # x, y, z, yaw (world)
     maps: np.ndarray | None = None  # late fusion's [3, S, S]
     boxes: np.ndarray | None = None  # late fusion's [K, 6]
+    evidence: np.ndarray | None = None  # defence.evidence: its rays' [F, F] UNKNOWN / FREE / OCCUPIED
 
 
 def describe(lie: Lie) -> str:
@@ -99,6 +108,30 @@ def _inside(points: np.ndarray, boxes: np.ndarray, margin: float) -> np.ndarray:
 
 
 def apply(sent: Sent, lie: Lie, size_m: float, targets: np.ndarray, seen: np.ndarray) -> tuple[Sent, bool]:
+    """`sent` after one lie, and whether it was told; its evidence made to agree when the lie says so (module
+    doc)."""
+    out, told = _apply(sent, lie, size_m, targets, seen)
+    if not told or lie.evidence != "consistent" or sent.evidence is None:
+        return dataclasses.replace(out, evidence=sent.evidence), told
+    return dataclasses.replace(out, evidence=_consistent(sent.evidence, lie, size_m, targets)), told
+
+
+def _consistent(ev: np.ndarray, lie: Lie, size_m: float, targets: np.ndarray) -> np.ndarray:
+    """The evidence [F, F] that agrees with what `lie` claims (module doc)."""
+    n = ev.shape[-1]
+    if lie.kind == "flip":
+        return ev[:, ::-1].copy()
+    if lie.kind == "zero":
+        return np.full_like(ev, UNKNOWN)
+    out = ev.copy()
+    if lie.kind == "remove_vehicle":
+        out[_mask(targets, size_m, n, MARGIN_M)] = UNKNOWN
+    elif lie.kind == "add_vehicle":
+        out[_mask(np.array([[lie.at_m[0], lie.at_m[1], CAR_LM, CAR_WM, 0.0]]), size_m, n)] = OCCUPIED
+    return out
+
+
+def _apply(sent: Sent, lie: Lie, size_m: float, targets: np.ndarray, seen: np.ndarray) -> tuple[Sent, bool]:
     """`sent` after one lie, and whether it was told (add_vehicle needs a vehicle it sees to copy).
 
     targets: (K, 5) the footprints of lie.targets in the sender's frame (remove_vehicle); seen: (K, 5) those of the

@@ -26,6 +26,9 @@ class Lie:
     targets: tuple[str, ...] = ("foe0",)  # remove_vehicle: the actors it hides (the hidden foe by default)
     at_m: tuple[float, float] = _f((10.0, 0.0), "[forward, left] metres in the liar's frame (add_vehicle: the "
                                    "phantom car's centre)", lambda v: all(math.isfinite(x) for x in v))
+    # defence.evidence: its free-space evidence stays honest, or is made to agree with the lie (an attacker that
+    # knows the defence; v2vsim/comm/misbehaviour.py)
+    evidence: Literal["honest", "consistent"] = "honest"
 
 
 LIDAR_ROAD_THRESHOLD, CAMERA_ROAD_THRESHOLD = 0.2, 0.45  # DefenceConfig.road_threshold's defaults

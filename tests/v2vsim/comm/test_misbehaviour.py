@@ -97,6 +97,26 @@ def test_add_vehicle_paints_a_car_with_what_vehicles_look_like_and_adds_its_box(
     assert not ok  # nothing seen to copy: not told
 
 
+def test_evidence_stays_honest_unless_the_lie_makes_it_agree() -> None:
+    from dataclasses import replace
+
+    from v2vsim.perception.evidence import FREE, OCCUPIED, UNKNOWN
+
+    ev = np.full((16, 16), FREE, np.uint8)
+    ev[3, 7:9] = OCCUPIED  # A's rear face, as its rays saw it
+    sent = replace(_sent(), evidence=ev)
+    hide = Lie(cavs=("cav1",), kind="remove_vehicle")
+    honest, _ = apply(sent, hide, SIZE, A[None], np.stack([A, B]))
+    assert np.array_equal(honest.evidence, ev)  # the lie is in its map only: its rays still say A is there
+    sly, _ = apply(sent, replace(hide, evidence="consistent"), SIZE, A[None], np.stack([A, B]))
+    assert (sly.evidence[2:6, 7:9] == UNKNOWN).all() and (sly.evidence[2:6, 6] == FREE).all() and (sly.evidence[10:14] == FREE).all()
+    added, _ = apply(sent, Lie(cavs=("cav1",), kind="add_vehicle", at_m=(-4.0, -7.0), evidence="consistent"), SIZE,
+                     A[None], np.stack([A, B]))
+    assert (added.evidence[9:11, 11] == OCCUPIED).all() and added.evidence[9, 12] == FREE and added.evidence[3, 7] == OCCUPIED
+    zero, _ = apply(sent, Lie(cavs=("cav1",), kind="zero", evidence="consistent"), SIZE, A[None], A[None])
+    assert (zero.evidence == UNKNOWN).all()
+
+
 def test_lies_are_active_for_their_cavs_from_their_frame_and_told_in_order() -> None:
     lies = [Lie(cavs=("cav1",), kind="zero", from_frame=5), Lie(cavs=("cav1", "cav2"), kind="scale", factor=2.0)]
     assert active(lies, "cav1", 4) == lies[1:] and active(lies, "cav1", 5) == lies and active(lies, "cav3", 9) == []
