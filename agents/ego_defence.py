@@ -16,6 +16,7 @@ from v2vsim.perception.consistency import MAX_CELLS, VEHICLE, Disagreement, chec
 from v2vsim.perception.evidence_check import check_evidence
 from v2vsim.perception.fuse import FusionInputs
 from v2vsim.perception.precision import Precision
+from v2vsim.perception.reputation import Standing, update
 
 
 @dataclass
@@ -30,7 +31,11 @@ class SenderCheck:
     # defence.evidence: sender -> per frame with evidence (frame, phantom_m2, removed_m2, unclaimed_m2, witnessed_m2),
     # its claims against the agents' rays (v2vsim/perception/evidence_check.py): recorded, not yet judged by
     evidence: dict[str, list[tuple]] = field(default_factory=dict)
+    # defence.remember: each sender's standing, and per frame it was present (frame, reputation, trusted)
+    standing: dict[str, Standing] = field(default_factory=dict)
+    reputation: dict[str, list[tuple]] = field(default_factory=dict)
     excluded: int = 0  # sender-frames the defence fused without
+    excluded_untrusted: int = 0  # ... and, with defence.remember, those not flagged this frame but not trusted yet
     excluded_unjudged: int = 0  # ... and, with defence.unjudged: exclude, those it had no evidence on
     cfg: DefenceConfig = field(init=False)  # the thresholds this run judges by
 
@@ -71,12 +76,27 @@ class SenderCheck:
                                                       default=None)))
             if s in hits:
                 flagged.add(s)
-        drop = flagged | (unjudged if cfg.unjudged == "exclude" else set())
+        # remembered: out while its reputation has not recovered from an earlier flag (judged clean or not now)
+        untrusted = self._remember(k, set(scores) | unjudged, unjudged, flagged) - flagged if cfg.remember else set()
+        drop = flagged | untrusted | (unjudged if cfg.unjudged == "exclude" else set())
         if cfg.exclude and drop:
             self.excluded += len(flagged)
-            self.excluded_unjudged += len(drop - flagged)
+            self.excluded_untrusted += len(untrusted)
+            self.excluded_unjudged += len(drop - flagged - untrusted)
             return without(inp, drop), flagged
         return inp, flagged
+
+    def _remember(self, k: int, present: set[str], unjudged: set[str], flagged: set[str]) -> set[str]:
+        """Every present sender's standing after frame k; the ones not trusted now (v2vsim/perception/reputation.py)."""
+        cfg = self.cfg
+        out = set()
+        for s in sorted(present):
+            st = update(self.standing.get(s, Standing()), s not in unjudged, s in flagged, cfg.forget, cfg.lie_weight)
+            self.standing[s] = st
+            self.reputation.setdefault(s, []).append((k, round(st.reputation, 4), st.trusted))
+            if not st.trusted:
+                out.add(s)
+        return out
 
     def _record_evidence(self, k: int, inp: FusionInputs, maps: dict[str, dict[str, np.ndarray]],
                          road_map: np.ndarray | None) -> None:
@@ -129,7 +149,14 @@ class SenderCheck:
                                                           for s, (n, m) in self.flagged_counts().items()},
                 "excluded_sender_frames": self.excluded, "unjudged": cfg.unjudged,
                 "excluded_unjudged_sender_frames": self.excluded_unjudged, "senders": senders,
-                **({"evidence": self._evidence_json()} if cfg.evidence else {})}
+                **({"evidence": self._evidence_json()} if cfg.evidence else {}),
+                **({"reputation": {"forget": cfg.forget, "lie_weight": cfg.lie_weight,
+                                   "excluded_untrusted_sender_frames": self.excluded_untrusted,
+                                   "senders": {s: {"frames_untrusted": sum(1 for r in rows if not r[2]),
+                                                   "min": min(r[1] for r in rows),
+                                                   "per_frame": [list(r) for r in rows]}
+                                               for s, rows in sorted(self.reputation.items())}}}
+                   if cfg.remember else {})}
 
     def _evidence_json(self) -> dict:
         """Per sender: frames with evidence, the largest phantom / removed / unclaimed area, the per-frame rows

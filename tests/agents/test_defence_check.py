@@ -51,3 +51,31 @@ def test_unjudged_exclude_also_leaves_out_a_sender_it_has_no_evidence_on() -> No
 def test_detection_alone_changes_nothing_fused() -> None:
     out, flagged, _ = _check("defence.detect=true", "defence.unjudged=exclude")
     assert flagged == {"cav2"} and set(out.outputs) == {"cav0", "cav1", "cav2", "cav3"}
+
+
+def _honest_inp() -> FusionInputs:
+    inp = _inp()
+    inp.outputs["cav2"] = (inp.outputs["cav1"][0].copy(), inp.outputs["cav1"][1])  # cav2 tells the truth now
+    return inp
+
+
+def test_remember_keeps_a_caught_liar_out_after_it_stops_lying_until_it_has_earned_its_way_back() -> None:
+    sc = load_scenario("scenarios/t_junction.yaml", ["bev.size_m=100", "defence.exclude=true",
+                                                     "defence.remember=true"])
+    check = SenderCheck(sc, model=None)  # type: ignore[arg-type]
+    out, flagged = check.check(0, _inp(), road_map=_road())
+    assert flagged == {"cav2"} and "cav2" not in out.outputs
+    fused = []
+    for k in range(1, 12):  # honest from frame 1 on: judged and clean each frame
+        out, flagged = check.check(k, _honest_inp(), road_map=_road())
+        assert not flagged
+        fused.append("cav2" in out.outputs)
+    assert fused == [False] * 7 + [True] * 4  # out for 7 more frames: back at the 8th clean one
+    rep = check.to_json()["reputation"]
+    assert rep["senders"]["cav2"]["frames_untrusted"] == 8 and rep["excluded_untrusted_sender_frames"] == 7
+    assert rep["senders"]["cav1"]["frames_untrusted"] == 0
+    # without remember, the same liar is fused again at the first honest frame
+    forgetful = SenderCheck(load_scenario("scenarios/t_junction.yaml", ["bev.size_m=100", "defence.exclude=true"]),
+                            model=None)  # type: ignore[arg-type]
+    forgetful.check(0, _inp(), road_map=_road())
+    assert "cav2" in forgetful.check(1, _honest_inp(), road_map=_road())[0].outputs

@@ -61,6 +61,13 @@ class DefenceConfig:
     unjudged: Literal["fuse", "exclude"] = "fuse"
     min_frames: int = _f(3, ">= 1 (frames a sender is flagged in before the run's status says so)",
                          lambda v: v >= 1)
+    # trust that remembers (v2vsim/perception/reputation.py): with exclude, a sender flagged once stays out until
+    # its reputation, built from the frames it passed and failed, has recovered
+    remember: bool = False
+    forget: float = _f(0.95, "0..1 (the share of a sender's past evidence kept from one frame to the next)",
+                       lambda v: 0 < v < 1)
+    lie_weight: float = _f(10.0, "> 0 (the evidence against a sender one flagged frame adds; a clean one adds 1)",
+                           _pos)
 
     @property
     def on(self) -> bool:
