@@ -36,7 +36,7 @@ from v2vsim.perception.device import prepare as prepare_device
 from v2vsim.perception.device import resolve_device
 from v2vsim.perception.encode import body_frame_points, late_outputs, pooled_confidence
 from v2vsim.perception.encode import encode as encode_features
-from v2vsim.perception.evidence import evidence_grid, pack_array
+from v2vsim.perception.evidence import evidence_cells, evidence_grid, pack_array
 from v2vsim.perception.plan import plan_models
 from v2vsim.perception.precision import resolve as resolve_precision
 from v2vsim.recording.scan import encode_scan, world_points
@@ -152,7 +152,7 @@ def cav_loop(args: AgentArgs, bus: Bus) -> int:
             if sc.defence.evidence and lidar:  # what its rays establish, sent with what it claims (signed with it)
                 with timer.stage("evidence"):
                     grid = evidence_grid(sf.lidar.points, sc.sensors.lidar.height_m, encoder.bev_size_m,
-                                         encoder.out_cells)
+                                         evidence_cells(encoder.out_cells))
             lies = active(sc.misbehaviour, me, world.frame)
             if lies:  # an attacked run (misbehaviour): what it sends is false, its own perception stays honest
                 sent = lie(Sent(feats, pose, maps, boxes, grid), lies, world, me, seen_ids, sc, told)

@@ -44,14 +44,15 @@ from v2vsim.comm.wire_spec import ego_wire_spec
 from v2vsim.config import Scenario
 from v2vsim.control.pilot import PilotStep
 from v2vsim.evaluation.fuse_and_score import predict_all
-from v2vsim.evaluation.gt import bev_ground_truth, gt_boxes
+from v2vsim.evaluation.gt import bev_ground_truth, gt_boxes, map_layer
 from v2vsim.evaluation.metrics import cavs_in_range
 from v2vsim.perception.build import build_agent_encoder, decompress
+from v2vsim.perception.consistency import MAX_CELLS
 from v2vsim.perception.extrapolate import extrapolate_features
 from v2vsim.perception.fuse import FusionInputs, Prediction
 from v2vsim.perception.plan import ModelPlan, plan_models
 from v2vsim.recording.scan import Scan, max_scan_bytes
-from v2vsim.sensors.scene import MapAssets
+from v2vsim.sensors.scene import GROUND_BUILDING, MapAssets
 from v2vsim.world.serialize import MAX_STATIC_BYTES, MAX_WORLD_BYTES, world_from_bytes
 from v2vsim.world.state import WorldState
 
@@ -211,7 +212,11 @@ def fuse(ego: Ego, run: EgoRun, k: int, world: WorldState) -> tuple[FusedFrame, 
     flagged: set[str] = set()
     if nets.sender_check is not None:  # the map's drivable area is map knowledge, not the frame's ground truth
         with timer.stage("consistency"):
-            inp, flagged = nets.sender_check.check(k, inp, gt["road"])
+            buildings = None
+            if sc.defence.evidence:  # the map's buildings, for the senders' walls (v2vsim/perception/evidence_check)
+                pose = world.actor(me).pose  # type: ignore[union-attr]
+                buildings = map_layer(ego.assets.ground, pose, sc.bev.size_m, MAX_CELLS, GROUND_BUILDING)
+            inp, flagged = nets.sender_check.check(k, inp, gt["road"], buildings)
     preds = predict_all(nets.models, inp, sc.bev.cells, nets.precision, ego.memo, ego.pool,
                         cost=None if ego.pool is None else timer.method_ms())
     for m, pred in preds.items():

@@ -18,7 +18,7 @@ from v2vsim.comm.inbox import Inbox, distance
 from v2vsim.comm.share import dense_payload
 from v2vsim.comm.stats import CommStats
 from v2vsim.comm.wire_spec import EgoDecoder, message_kind
-from v2vsim.perception.evidence import unpack
+from v2vsim.perception.evidence import evidence_cells, unpack
 from v2vsim.perception.fuse import FusionInputs
 from v2vsim.perception.motion import OutputMessage, compensate_outputs
 from v2vsim.recording.scan import Scan, decode_scan
@@ -97,7 +97,7 @@ def collect(box: Mailbox, k: int, world: WorldState, me: str, kinds: list[str], 
                 rel[i] = by_kind[kind][i]
                 posed.add(i)
             if EVIDENCE in msg.extras and s not in inp.evidence:
-                grid = _evidence_of(msg, decoder.spec["features"].payload[-1])
+                grid = _evidence_of(msg, evidence_cells(decoder.spec["features"].payload[-1]))
                 if grid is not None:
                     inp.evidence[s] = grid
             if kind == "features":

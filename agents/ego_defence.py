@@ -13,7 +13,7 @@ from torch import nn
 from v2vsim.config.schema import Scenario
 from v2vsim.config.schema_misbehaviour import DefenceConfig
 from v2vsim.perception.consistency import MAX_CELLS, VEHICLE, Disagreement, check_frame, decode_alone, without
-from v2vsim.perception.evidence_check import check_evidence
+from v2vsim.perception.evidence_check import check_evidence, pose_check
 from v2vsim.perception.fuse import FusionInputs
 from v2vsim.perception.precision import Precision
 from v2vsim.perception.reputation import Standing, update
@@ -28,8 +28,9 @@ class SenderCheck:
     precision: Precision = "fp32"
     # sender -> per frame compared: (frame, road, vehicle_m2, shared_m2, flagged, road_corr, road_vs_map)
     frames: dict[str, list[tuple]] = field(default_factory=dict)
-    # defence.evidence: sender -> per frame with evidence (frame, phantom_m2, removed_m2, unclaimed_m2, witnessed_m2),
-    # its claims against the agents' rays (v2vsim/perception/evidence_check.py): recorded, not yet judged by
+    # defence.evidence: sender -> per frame with evidence (frame, phantom_m2, removed_m2, unclaimed_m2, witnessed_m2,
+    # pose_shift_m, pose_turn_deg, on_map, on_map_corrected): its claims against the agents' rays and its pose
+    # against the map (v2vsim/perception/evidence_check.py): recorded, not yet judged by
     evidence: dict[str, list[tuple]] = field(default_factory=dict)
     # defence.remember: each sender's standing, and per frame it was present (frame, reputation, trusted)
     standing: dict[str, Standing] = field(default_factory=dict)
@@ -44,16 +45,18 @@ class SenderCheck:
         # road_threshold null: the calibrated default of the run's sensors
         self.cfg = dataclasses.replace(self.sc.defence, road_threshold=self.sc.defence.road_limit(cameras))
 
-    def check(self, k: int, inp: FusionInputs, road_map: np.ndarray | None = None) -> tuple[FusionInputs, set[str]]:
+    def check(self, k: int, inp: FusionInputs, road_map: np.ndarray | None = None,
+              buildings: np.ndarray | None = None) -> tuple[FusionInputs, set[str]]:
         """Frame k: score and flag the senders; the inputs every method fuses (without the flagged ones when the
-        defence excludes) and the flagged senders. `road_map`: the drivable area of the ego's map on its grid."""
+        defence excludes) and the flagged senders. `road_map`: the drivable area of the ego's map on its grid;
+        `buildings` (defence.evidence): its buildings' footprints on a MAX_CELLS grid."""
         cfg = self.cfg
         ego = inp.senders[0]
         scores: dict[str, list[Disagreement]] = {}
         hits: set[str] = set()
         all_maps = self._maps(inp)
         if cfg.evidence and inp.evidence:
-            self._record_evidence(k, inp, all_maps, road_map)
+            self._record_evidence(k, inp, all_maps, road_map, buildings)
         for kind, maps in all_maps.items():  # flagged on any kind it sent
             poses = inp.poses_by_kind.get(kind, inp.rel_poses)
             rel = {s: poses[inp.senders.index(s)] for s in maps}
@@ -99,16 +102,20 @@ class SenderCheck:
         return out
 
     def _record_evidence(self, k: int, inp: FusionInputs, maps: dict[str, dict[str, np.ndarray]],
-                         road_map: np.ndarray | None) -> None:
-        """Each sender's vehicle claims (its features decoded alone, else its outputs) against the agents' rays."""
+                         road_map: np.ndarray | None, buildings: np.ndarray | None) -> None:
+        """Each sender's vehicle claims (its features decoded alone, else its outputs) against the agents' rays,
+        and the pose it claims against the map's buildings."""
         vehicle = {s: m[VEHICLE] for kind in ("outputs", "features") for s, m in maps.get(kind, {}).items()}
         kind_of = {s: kind for kind in ("outputs", "features") for s in maps.get(kind, {})}
         poses = {s: inp.poses_by_kind.get(kind_of[s], inp.rel_poses)[inp.senders.index(s)] for s in vehicle}
         verdicts = check_evidence(vehicle, inp.evidence, poses, self.sc.bev.size_m, MAX_CELLS, road_map)
         for s, v in verdicts.items():
-            if s != inp.senders[0]:
-                self.evidence.setdefault(s, []).append((k, v.phantom_m2, v.removed_m2, v.unclaimed_m2,
-                                                        v.witnessed_m2))
+            if s == inp.senders[0]:
+                continue
+            pv = None if buildings is None else pose_check(inp.evidence[s], poses[s], buildings, self.sc.bev.size_m)
+            self.evidence.setdefault(s, []).append(
+                (k, v.phantom_m2, v.removed_m2, v.unclaimed_m2, v.witnessed_m2,
+                 *((None,) * 4 if pv is None else (pv.shift_m, pv.turn_deg, pv.on_map, pv.on_map_corrected))))
 
     def _maps(self, inp: FusionInputs) -> dict[str, dict[str, np.ndarray]]:
         """Per message kind, each sender's single-agent maps [3, S, S]: its features decoded alone; late fusion's
@@ -160,10 +167,11 @@ class SenderCheck:
 
     def _evidence_json(self) -> dict:
         """Per sender: frames with evidence, the largest phantom / removed / unclaimed area, the per-frame rows
-        (frame, phantom_m2, removed_m2, unclaimed_m2, witnessed_m2)."""
+        (frame, phantom_m2, removed_m2, unclaimed_m2, witnessed_m2, pose_shift_m, pose_turn_deg, on_map,
+        on_map_corrected; the last four null where its rays hit no building)."""
         out = {}
         for s, rows in sorted(self.evidence.items()):
-            a = np.array([r[1:] for r in rows], dtype=float)
+            a = np.array([r[1:5] for r in rows], dtype=float)
             out[s] = {"frames": len(rows), **{f"max_{name}": round(float(a[:, i].max()), 2)
                                               for i, name in enumerate(("phantom_m2", "removed_m2", "unclaimed_m2"))},
                       "per_frame": [list(r) for r in rows]}

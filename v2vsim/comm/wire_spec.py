@@ -30,7 +30,7 @@ from models.presets import get_preset
 from v2vsim.comm.codec import CELLS, EVIDENCE, AtMost, KindSpec, Message, RejectedMessage, check_arrival, decode
 from v2vsim.comm.stats import CommStats
 from v2vsim.config import Scenario
-from v2vsim.perception.evidence import packed_size
+from v2vsim.perception.evidence import evidence_cells, packed_size
 
 MAX_BOXES = MAX_DETECTIONS
 """Late fusion ships at most this many boxes per CAV: models.heads.decode_detections' top_k."""
@@ -58,7 +58,7 @@ def ego_wire_spec(sc: Scenario, encoder_out_channels: int, encoder_out_cells: in
     s = get_preset(sc.perception.preset).seg_cells  # the late outputs' maps: the heads' grid, not 8 F
     sweep = sc.sensors.lidar.channels * sc.sensors.lidar.points_per_channel
     # defence.evidence: a LiDAR sender's free-space evidence beside its map (optional: a camera CAV has no rays)
-    ev = {EVIDENCE: (packed_size(f),)} if sc.defence.evidence else {}
+    ev = {EVIDENCE: (packed_size(evidence_cells(f)),)} if sc.defence.evidence else {}
     return {
         "features": KindSpec((c // r, f, f), extras=ev, optional=frozenset(ev), channel_compression=r, spaces=spaces),
         "points": KindSpec((AtMost(sweep), 4)),

@@ -41,9 +41,10 @@ class DefenceConfig:
     senders where they are near the same cells; a sender that disagrees beyond a threshold is flagged that frame."""
 
     detect: bool = False  # score and flag senders each frame (one single-agent decoding per sender and frame)
-    # every LiDAR CAV sends what its rays establish, occupied / free / unknown per cell of its feature grid, with
-    # its feature and output messages (1 KB at 64 x 64; v2vsim/perception/evidence.py, issue 67), and the ego
-    # records each sender's claims against the agents' rays (v2vsim/perception/evidence_check.py; implies detect)
+    # every LiDAR CAV sends what its rays establish, occupied / free / unknown per cell of a grid twice as fine as
+    # its features' (4 KB at the 64 x 64 zoo; v2vsim/perception/evidence.py, issue 67) with its feature and output
+    # messages, and the ego records each sender's claims against the agents' rays (v2vsim/perception/
+    # evidence_check.py; implies detect)
     evidence: bool = False
     exclude: bool = False  # the defence: every method fuses without the senders flagged at that frame (implies detect)
     near_m: float = _f(30.0, "> 0 (m: a cell is compared where the sender and another agent are within this of it)",

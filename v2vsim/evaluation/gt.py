@@ -23,8 +23,8 @@ import numpy as np
 from v2vsim.config import BevConfig
 from v2vsim.sensors.camera import CameraFrame
 from v2vsim.sensors.lidar import LidarSweep
-from v2vsim.sensors.scene import GROUND_GT_LANE, GROUND_ROAD, MapAssets, actor_index, build_map_assets
-from v2vsim.world.geometry import BevGrid
+from v2vsim.sensors.scene import GROUND_GT_LANE, GROUND_ROAD, GroundRaster, MapAssets, actor_index, build_map_assets
+from v2vsim.world.geometry import BevGrid, Pose
 from v2vsim.world.state import WorldState
 
 
@@ -109,6 +109,16 @@ def bev_ground_truth(world: WorldState, ego_id: str, bev: BevConfig, visible_ids
     for name, seen in (more_visible or {}).items():
         out[name] = rasterise_boxes(boxes[np.array([i in seen for i in ids], dtype=bool)], grid)
     return out
+
+
+def map_layer(ground: GroundRaster, pose: Pose, size_m: float, cells: int, bit: int) -> np.ndarray:
+    """[cells, cells] bool: the cells of a `size_m` grid around `pose` (its body frame) whose centre the map
+    raster marks with `bit` (GROUND_ROAD, GROUND_BUILDING, ...)."""
+    centres = BevGrid(size_m, cells).cell_centres()
+    c, s = math.cos(pose.yaw), math.sin(pose.yaw)
+    wxy = np.stack([pose.x + c * centres[..., 0] - s * centres[..., 1],
+                    pose.y + s * centres[..., 0] + c * centres[..., 1]], axis=-1)
+    return (ground.sample(wxy) & bit) > 0
 
 
 def visible_actor_ids(lidar_sweeps: Iterable[LidarSweep], camera_frames: Iterable[CameraFrame],

@@ -13,6 +13,12 @@ pose it claims:
     unclaimed_m2(s) = area of the drivable map where s's own rays were stopped and s claims nothing (p < 0.25):
                     removal that no one else can see, told by the liar's own evidence against its own map
 
+And the pose it claims (pose_check), against the map rather than anyone's word: the cells where its rays were
+stopped, placed by the claimed pose, should fall on the outlines of the HD map's buildings where they are walls.
+The correction (a rotation about the sender, then a shift) that puts most of them on the outlines is searched over
++-POSE_SHIFT_CELLS x POSE_TURNS_DEG; an honest pose needs none, a pose told 2 m off needs about 2 m. The map is always
+there, so the check needs no other agent and no shared area.
+
 Never one agent's evidence for its own claims: phantom and removed ask the others, and unclaimed can only convict
 (a liar that lies in its evidence too, consistently, escapes it, and is caught only where another agent sees;
 a lie about a place only the liar sees cannot be caught by anyone). The ego is one of the "others" for each
@@ -31,6 +37,8 @@ from models.warp import warp_to_ego
 from v2vsim.perception.evidence import FREE, OCCUPIED
 
 CLAIM, NO_CLAIM = 0.5, 0.25  # a vehicle claimed above CLAIM; nothing claimed below NO_CLAIM (between: unsure)
+POSE_SHIFT_CELLS = 5  # the correction's shift is searched over +-5 cells (+-3.9 m at 0.78 m) on each axis ...
+POSE_TURNS_DEG = (-8.0, -6.0, -4.0, -2.0, 0.0, 2.0, 4.0, 6.0, 8.0)  # ... at each of these turns about the sender
 
 
 @dataclass(frozen=True)
@@ -93,3 +101,54 @@ def check_evidence(vehicle: dict[str, np.ndarray], evidence: dict[str, np.ndarra
                                  round(float(unclaimed.sum()) * cell_m2, 2),
                                  round(float((claim & (free[others].any(0) | o_occ)).sum()) * cell_m2, 2))
     return out
+
+
+@dataclass(frozen=True)
+class PoseVerdict:
+    """A sender's claimed pose against the map: the correction that best puts its walls on the map's buildings."""
+
+    shift_m: float  # the correction's length
+    turn_deg: float
+    on_map: float  # the share of its hits on a building's outline (a cell either side) as claimed
+    on_map_corrected: float  # ... after the correction
+    hits: int  # the hits it was judged on (cells where its rays stopped)
+
+
+def pose_check(evidence: np.ndarray, pose: np.ndarray, buildings: np.ndarray, size_m: float) -> PoseVerdict | None:
+    """evidence: the sender's [E, E] grid in its own frame; pose: its claimed (dx, dy, dyaw) in the ego frame;
+    buildings: the HD map's building footprints on the ego grid ([E, E] bool, the same extent). None when its rays
+    hit no building cell under any correction (nothing to judge by)."""
+    cells = buildings.shape[-1]
+    occ = torch.from_numpy(np.asarray(evidence) == OCCUPIED).float()
+    if occ.shape[-1] != cells:
+        occ = F.interpolate(occ[None, None], size=(cells, cells), mode="nearest")[0, 0]
+    hits = int(occ.sum())
+    if hits == 0:
+        return None
+    rel = torch.tensor(np.asarray(pose, np.float32)).repeat(len(POSE_TURNS_DEG), 1)  # [T, 3]
+    rel[:, 2] += torch.deg2rad(torch.tensor(POSE_TURNS_DEG))
+    turned, _ = warp_to_ego(occ[None, None].expand(len(POSE_TURNS_DEG), 1, cells, cells).contiguous(), rel, size_m,
+                            mode="nearest")  # [T, 1, G, G]
+    b = torch.from_numpy(np.asarray(buildings, np.float32))[None, None]
+    grown, shrunk = F.max_pool2d(b, 3, stride=1, padding=1), -F.max_pool2d(-b, 3, stride=1, padding=1)
+    walls = (grown - shrunk)[0, 0]  # the buildings' outlines, a cell either side: where a wall's hits fall
+    # circular cross-correlation of each turned hit map with the grown buildings: score[t, i, j] = hits on a
+    # building after shifting by (i, j) cells (rows forward, columns left); shifts past +-POSE_SHIFT_CELLS ignored
+    score = torch.fft.irfft2(torch.fft.rfft2(walls)[None] * torch.conj(torch.fft.rfft2(turned[:, 0])), s=(cells, cells))
+    n = POSE_SHIFT_CELLS
+    score = torch.roll(score, shifts=(n, n), dims=(1, 2))[:, : 2 * n + 1, : 2 * n + 1]  # [T, 2n+1, 2n+1]
+    kept = float(turned.sum() / len(POSE_TURNS_DEG))  # hits that land on the ego grid at all
+    top = float(score.max())
+    if top < 0.5 or kept < 1:
+        return None
+    # a wall's hits fit as well anywhere along the wall: of the corrections that fit (nearly) best, the least
+    turns = torch.tensor(POSE_TURNS_DEG)[:, None, None] / 2.0  # a 2-degree turn costs as much as a cell's shift
+    ax = torch.arange(-n, n + 1, dtype=torch.float32)
+    cost = turns ** 2 + ax[None, :, None] ** 2 + ax[None, None, :] ** 2  # [T, 2n+1, 2n+1]
+    cost = torch.where(score >= top - max(1.0, 0.02 * kept), cost, torch.full_like(cost, float("inf")))
+    best = int(torch.argmin(cost))
+    t, i, j = best // (2 * n + 1) ** 2, (best // (2 * n + 1)) % (2 * n + 1) - n, best % (2 * n + 1) - n
+    zero = float(score[POSE_TURNS_DEG.index(0.0), n, n])
+    res = size_m / cells
+    return PoseVerdict(round(float(np.hypot(i, j)) * res, 2), POSE_TURNS_DEG[t], round(zero / kept, 3),
+                       round(float(score[t, i + n, j + n]) / kept, 3), hits)

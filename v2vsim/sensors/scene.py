@@ -33,6 +33,7 @@ HIT_BUILDING = 3
 GROUND_ROAD = 1  # drivable area
 GROUND_MARKING = 2  # painted lane marking, drawn thin (what cameras and LiDAR intensity see)
 GROUND_GT_LANE = 4  # lane marking drawn `gt_lane_width_m` wide, dashes kept (BEV ground truth)
+GROUND_BUILDING = 8  # a building's footprint (the HD map a receiver checks a sender's walls against)
 
 DASH_M = 3.0  # dashed markings: painted length
 GAP_M = 6.0  # ... and gap
@@ -296,10 +297,15 @@ def rasterise_ground(static: StaticMap, res: float = 0.1, marking_width_m: float
                                   strict=True)), fill=1)
 
     layers = []
-    for what in ("road", "marking", "gt_lane"):
+    for what in ("road", "marking", "gt_lane", "building"):
         img = Image.new("L", (w, h), 0)
         draw = ImageDraw.Draw(img)
-        if what == "road":
+        if what == "building":
+            for b in static.buildings:
+                p = np.asarray(b.polygon, dtype=np.float64).reshape(-1, 2)
+                if len(p) >= 3:
+                    fill(draw, Polygon(p).buffer(0))
+        elif what == "road":
             for poly in static.roads:
                 p = np.asarray(poly, dtype=np.float64).reshape(-1, 2)
                 if len(p) >= 3:
@@ -316,7 +322,8 @@ def rasterise_ground(static: StaticMap, res: float = 0.1, marking_width_m: float
                                                     join_style="round")
                     fill(draw, band)
         layers.append(np.asarray(img, dtype=np.uint8))
-    bits = (layers[0] * GROUND_ROAD) | (layers[1] * GROUND_MARKING) | (layers[2] * GROUND_GT_LANE)
+    bits = ((layers[0] * GROUND_ROAD) | (layers[1] * GROUND_MARKING) | (layers[2] * GROUND_GT_LANE)
+            | (layers[3] * GROUND_BUILDING))
     return GroundRaster(bits.astype(np.uint8), float(x0), float(y1), float(res), _mips(layers[1], 5))
 
 

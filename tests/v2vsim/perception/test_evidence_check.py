@@ -70,3 +70,37 @@ def test_a_car_only_the_liar_sees_is_caught_by_its_own_rays_unless_it_lies_in_th
     consistent = check_evidence({"ego": _vehicle(), "cav1": _vehicle()}, {"ego": nobody, "cav1": _evidence()},
                                 {"ego": EGO, "cav1": CAV1}, SIZE, G, road_map=road)
     assert consistent["cav1"] == type(consistent["cav1"])(0.0, 0.0, 0.0, 0.0)  # by design: nobody else sees
+
+
+def _walls_world() -> tuple[np.ndarray, np.ndarray]:
+    """The map's buildings on the ego grid (a block on the left, one ahead) and the hits an honest sender at the
+    ego's own pose has on their faces, at the evidence grid (128 x 128 over 100 m)."""
+    from v2vsim.perception.evidence import OCCUPIED as HIT
+
+    e = 128
+    buildings = np.zeros((e, e), bool)
+    buildings[_rows_cols(e, -40.0, 40.0, 8.0, 30.0)] = True
+    buildings[_rows_cols(e, 25.0, 45.0, -30.0, 5.0)] = True
+    ev = np.full((e, e), UNKNOWN, np.uint8)
+    c = SIZE / e
+    def cell(x: float, y: float) -> tuple[int, int]:
+        return int((SIZE / 2 - x) // c), int((SIZE / 2 - y) // c)
+
+    for x in np.arange(-30.0, 24.0, c / 2):
+        ev[cell(x, 8.2)] = HIT  # the left block's face
+    for y in np.arange(-25.0, 4.0, c / 2):
+        ev[cell(25.2, y)] = HIT  # the face ahead
+    return buildings, ev
+
+
+def test_a_pose_told_two_metres_or_five_degrees_off_is_corrected_against_the_map_and_a_true_one_is_not() -> None:
+    from v2vsim.perception.evidence_check import pose_check
+
+    buildings, ev = _walls_world()
+    honest = pose_check(ev, EGO, buildings, SIZE)
+    assert honest is not None and honest.shift_m < 0.8 and honest.turn_deg == 0.0 and honest.on_map > 0.9
+    moved = pose_check(ev, np.array([2.0, 0.0, 0.0], np.float32), buildings, SIZE)  # claims 2 m ahead of the truth
+    assert moved is not None and 1.5 <= moved.shift_m <= 2.5 and moved.on_map < 0.7 < moved.on_map_corrected
+    turned = pose_check(ev, np.array([0.0, 0.0, np.radians(5.0)], np.float32), buildings, SIZE)
+    assert turned is not None and turned.turn_deg in (-4.0, -6.0) and turned.on_map_corrected > turned.on_map
+    assert pose_check(np.full_like(ev, UNKNOWN), EGO, buildings, SIZE) is None  # no hits: nothing to judge
