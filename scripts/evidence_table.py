@@ -1,0 +1,81 @@
+"""Issue 67's evidence study table (scripts/evidence_study.sh): from each run's metrics.json `defence.evidence`,
+the honest senders' figures on the clean runs (per sender-frame: median, 98th percentile, max) and, per lie, the
+liar's frames past the clean runs' 98th percentile and the frames to the first one.
+
+    python scripts/evidence_table.py runs/evidence/seed0 [--clean runs/evidence/seed100]
+
+--clean: take the clean distribution (the thresholds) from another seed's runs (the tuning seed), so that the lie
+rows are judged on thresholds their seed never set."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+# per-frame row of metrics.json defence.evidence (agents/ego_defence.py): figure -> its column, and how it is read
+FIGURES = {"phantom_m2": 1, "removed_m2": 2, "unclaimed_m2": 3, "pose_gain": None}
+
+
+def _value(row: list, name: str) -> float | None:
+    if name == "pose_gain":  # walls on the map after the best correction minus as claimed
+        return None if row[7] is None else float(row[8]) - float(row[7])
+    return float(row[FIGURES[name]])
+
+
+def rows_of(run: Path) -> dict[str, list[list]]:
+    doc = json.loads((run / "metrics.json").read_text())
+    ev = (doc.get("defence") or {}).get("evidence") or {}
+    return {s: x["per_frame"] for s, x in ev.items()}
+
+
+def liars_of(run: Path) -> set[str]:
+    doc = json.loads((run / "metrics.json").read_text())
+    return {c for lie in doc.get("misbehaviour") or [] for c in lie.get("cavs", [])}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("folder", type=Path)
+    ap.add_argument("--clean", type=Path, default=None)
+    a = ap.parse_args(argv)
+    clean_dir = a.clean or a.folder
+    clean: dict[str, list[float]] = {k: [] for k in FIGURES}
+    for run in sorted(clean_dir.glob("clean_*")):
+        if (run / "metrics.json").is_file():
+            for rows in rows_of(run).values():
+                for r in rows:
+                    for k in FIGURES:
+                        if (v := _value(r, k)) is not None:
+                            clean[k].append(v)
+    if not clean["phantom_m2"]:
+        print(f"no clean runs with evidence under {clean_dir}", file=sys.stderr)
+        return 1
+    limit = {k: float(np.percentile(v, 98)) for k, v in clean.items() if v}
+    print(f"Honest senders, clean runs of {clean_dir} (sender-frames):\n")
+    print("| figure | sender-frames | median | 98th percentile | max |\n|---|---|---|---|---|")
+    for k, v in clean.items():
+        if v:
+            print(f"| {k} | {len(v)} | {np.median(v):.2f} | {limit[k]:.2f} | {max(v):.2f} |")
+    print(f"\nLies, {a.folder}: the liar's sender-frames past the 98th percentile above (frames to the first):\n")
+    print("| run | liar frames | " + " | ".join(FIGURES) + " |\n|---|---|" + "---|" * len(FIGURES))
+    for run in sorted(a.folder.glob("lie_*")):
+        if not (run / "metrics.json").is_file():
+            continue
+        rows = {s: r for s, r in rows_of(run).items() if s in liars_of(run)}
+        n = sum(len(r) for r in rows.values())
+        cells = []
+        for k in FIGURES:
+            past = [[(v := _value(r, k)) is not None and v > limit.get(k, np.inf) for r in rs] for rs in rows.values()]
+            hit = sum(sum(p) for p in past)
+            first = min((p.index(True) for p in past if True in p), default=None)
+            cells.append(f"{hit} ({'-' if first is None else first})")
+        print(f"| {run.name} | {n} | " + " | ".join(cells) + " |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
