@@ -29,8 +29,8 @@ class SenderCheck:
     # sender -> per frame compared: (frame, road, vehicle_m2, shared_m2, flagged, road_corr, road_vs_map)
     frames: dict[str, list[tuple]] = field(default_factory=dict)
     # defence.evidence: sender -> per frame with evidence (frame, phantom_m2, removed_m2, unclaimed_m2, witnessed_m2,
-    # pose_shift_m, pose_turn_deg, on_map, on_map_corrected): its claims against the agents' rays and its pose
-    # against the map (v2vsim/perception/evidence_check.py): recorded, not yet judged by
+    # pose_shift_m, pose_turn_deg, on_map, on_map_corrected, flagged): its claims against the agents' rays and its
+    # pose against the map (v2vsim/perception/evidence_check.py), judged by the thresholds that are set
     evidence: dict[str, list[tuple]] = field(default_factory=dict)
     # defence.remember: each sender's standing, and per frame it was present (frame, reputation, trusted)
     standing: dict[str, Standing] = field(default_factory=dict)
@@ -55,8 +55,10 @@ class SenderCheck:
         scores: dict[str, list[Disagreement]] = {}
         hits: set[str] = set()
         all_maps = self._maps(inp)
+        ev_judged: set[str] = set()
         if cfg.evidence and inp.evidence:
-            self._record_evidence(k, inp, all_maps, road_map, buildings)
+            ev_judged, ev_flagged = self._record_evidence(k, inp, all_maps, road_map, buildings)
+            hits |= ev_flagged
         for kind, maps in all_maps.items():  # flagged on any kind it sent
             poses = inp.poses_by_kind.get(kind, inp.rel_poses)
             rel = {s: poses[inp.senders.index(s)] for s in maps}
@@ -66,6 +68,10 @@ class SenderCheck:
                 scores.setdefault(s, []).append(d)
         flagged: set[str] = set()
         unjudged = {s for s in [*inp.features, *inp.outputs, *inp.points] if s != ego}
+        for s in ev_judged:  # judged by the rays or the map: the consistency check's shared area is not needed
+            unjudged.discard(s)
+            if s in hits:
+                flagged.add(s)
         for s, ds in scores.items():
             judged = [d for d in ds if d.road is not None and d.shared_m2 >= cfg.min_shared_m2]
             if not judged:  # too few shared cells in every kind: no evidence either way
@@ -102,9 +108,14 @@ class SenderCheck:
         return out
 
     def _record_evidence(self, k: int, inp: FusionInputs, maps: dict[str, dict[str, np.ndarray]],
-                         road_map: np.ndarray | None, buildings: np.ndarray | None) -> None:
+                         road_map: np.ndarray | None, buildings: np.ndarray | None) -> tuple[set[str], set[str]]:
         """Each sender's vehicle claims (its features decoded alone, else its outputs) against the agents' rays,
-        and the pose it claims against the map's buildings."""
+        and the pose it claims against the map's buildings; the senders judged by a figure that has a threshold,
+        and those flagged by one."""
+        cfg = self.cfg
+        limits = {1: cfg.phantom_threshold_m2, 2: cfg.removed_threshold_m2, 3: cfg.unclaimed_threshold_m2}
+        judged: set[str] = set()
+        flagged: set[str] = set()
         vehicle = {s: m[VEHICLE] for kind in ("outputs", "features") for s, m in maps.get(kind, {}).items()}
         kind_of = {s: kind for kind in ("outputs", "features") for s in maps.get(kind, {})}
         poses = {s: inp.poses_by_kind.get(kind_of[s], inp.rel_poses)[inp.senders.index(s)] for s in vehicle}
@@ -113,9 +124,17 @@ class SenderCheck:
             if s == inp.senders[0]:
                 continue
             pv = None if buildings is None else pose_check(inp.evidence[s], poses[s], buildings, self.sc.bev.size_m)
-            self.evidence.setdefault(s, []).append(
-                (k, v.phantom_m2, v.removed_m2, v.unclaimed_m2, v.witnessed_m2,
-                 *((None,) * 4 if pv is None else (pv.shift_m, pv.turn_deg, pv.on_map, pv.on_map_corrected))))
+            row = (k, v.phantom_m2, v.removed_m2, v.unclaimed_m2, v.witnessed_m2,
+                   *((None,) * 4 if pv is None else (pv.shift_m, pv.turn_deg, pv.on_map, pv.on_map_corrected)))
+            past = [row[i] > lim for i, lim in limits.items() if lim is not None]
+            if pv is not None and cfg.pose_gain_threshold is not None:
+                past.append(pv.on_map_corrected - pv.on_map > cfg.pose_gain_threshold)
+            if past:
+                judged.add(s)
+            if any(past):
+                flagged.add(s)
+            self.evidence.setdefault(s, []).append((*row, any(past)))
+        return judged, flagged
 
     def _maps(self, inp: FusionInputs) -> dict[str, dict[str, np.ndarray]]:
         """Per message kind, each sender's single-agent maps [3, S, S]: its features decoded alone; late fusion's
@@ -128,10 +147,13 @@ class SenderCheck:
     def flagged_counts(self) -> dict[str, tuple[int, int]]:
         """Sender -> (frames flagged, frames compared), for the senders flagged in at least defence.min_frames."""
         out = {}
-        for s, rows in sorted(self.frames.items()):
-            n = sum(r[4] for r in rows)
+        for s in sorted(set(self.frames) | set(self.evidence)):
+            compared = {r[0]: bool(r[4]) for r in self.frames.get(s, [])}  # the consistency check's frames ...
+            for r in self.evidence.get(s, []):  # ... and the rays' and the map's (a frame counts once)
+                compared[r[0]] = compared.get(r[0], False) or bool(r[9])
+            n = sum(compared.values())
             if n >= self.cfg.min_frames:
-                out[s] = (n, len(rows))
+                out[s] = (n, len(compared))
         return out
 
     def to_json(self) -> dict:
@@ -168,7 +190,7 @@ class SenderCheck:
     def _evidence_json(self) -> dict:
         """Per sender: frames with evidence, the largest phantom / removed / unclaimed area, the per-frame rows
         (frame, phantom_m2, removed_m2, unclaimed_m2, witnessed_m2, pose_shift_m, pose_turn_deg, on_map,
-        on_map_corrected; the last four null where its rays hit no building)."""
+        on_map_corrected, flagged; the four pose figures null where its rays hit no building)."""
         out = {}
         for s, rows in sorted(self.evidence.items()):
             a = np.array([r[1:5] for r in rows], dtype=float)

@@ -79,3 +79,36 @@ def test_remember_keeps_a_caught_liar_out_after_it_stops_lying_until_it_has_earn
                             model=None)  # type: ignore[arg-type]
     forgetful.check(0, _inp(), road_map=_road())
     assert "cav2" in forgetful.check(1, _honest_inp(), road_map=_road())[0].outputs
+
+
+def _phantom_inp() -> FusionInputs:
+    """cav2 claims a car 20 m ahead on the road where the ego's rays pass freely (128 x 128 evidence)."""
+    from v2vsim.perception.evidence import FREE, UNKNOWN
+
+    inp = _honest_inp()
+    maps = inp.outputs["cav2"][0].copy()
+    c = SIZE / CELLS
+    rows, cols = slice(int((SIZE / 2 - 22.3) // c), int((SIZE / 2 - 17.7) // c) + 1), slice(49, 51)  # x 18-22, |y| < 1
+    maps[0, rows, cols] = 1.0
+    inp.outputs["cav2"] = (maps, inp.outputs["cav2"][1])
+    e = 128
+    seen = np.full((e, e), UNKNOWN, np.uint8)
+    ce = SIZE / e
+    seen[int((SIZE / 2 - 40) // ce):int(SIZE / 2 // ce), int((SIZE / 2 - 3) // ce):int((SIZE / 2 + 3) // ce)] = FREE
+    blind = np.full((e, e), UNKNOWN, np.uint8)
+    inp.evidence = {"cav0": seen, "cav1": blind, "cav2": blind.copy()}
+    return inp
+
+
+def test_evidence_flags_a_phantom_only_where_a_threshold_is_set() -> None:
+    base = ["bev.size_m=100", "defence.exclude=true", "defence.evidence=true"]
+    judged = SenderCheck(load_scenario("scenarios/t_junction.yaml", [*base, "defence.phantom_threshold_m2=4"]),
+                         model=None)  # type: ignore[arg-type]
+    out, flagged = judged.check(0, _phantom_inp(), road_map=_road())
+    assert flagged == {"cav2"} and "cav2" not in out.outputs
+    row = judged.to_json()["evidence"]["cav2"]["per_frame"][0]
+    assert row[1] > 4 and row[9] is True
+    recorded = SenderCheck(load_scenario("scenarios/t_junction.yaml", base), model=None)  # type: ignore[arg-type]
+    out, flagged = recorded.check(0, _phantom_inp(), road_map=_road())
+    assert not flagged and "cav2" in out.outputs  # no threshold: recorded, not judged
+    assert recorded.to_json()["evidence"]["cav2"]["max_phantom_m2"] > 4

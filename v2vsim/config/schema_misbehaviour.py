@@ -46,6 +46,17 @@ class DefenceConfig:
     # messages, and the ego records each sender's claims against the agents' rays (v2vsim/perception/
     # evidence_check.py; implies detect)
     evidence: bool = False
+    # with evidence, a sender is flagged at a frame where a figure of evidence_check passes its threshold; null:
+    # recorded, not judged by (the thresholds come from clean runs of the tuning seed: scripts/evidence_study.sh)
+    phantom_threshold_m2: float | None = _f(None, "null or >= 0 (m^2 of its claimed vehicles where another agent's "
+                                                  "rays passed)", _nonneg)
+    removed_threshold_m2: float | None = _f(None, "null or >= 0 (m^2 of vehicles others see where its rays reached "
+                                                  "and it claims none)", _nonneg)
+    unclaimed_threshold_m2: float | None = _f(None, "null or >= 0 (m^2 of its own hits on the road it claims no "
+                                                    "vehicle at)", _nonneg)
+    pose_gain_threshold: float | None = _f(None, "null or 0..1 (the share of its wall hits a pose correction puts "
+                                                 "on the map's buildings beyond the claimed pose's)",
+                                           lambda v: 0 <= v <= 1)
     exclude: bool = False  # the defence: every method fuses without the senders flagged at that frame (implies detect)
     near_m: float = _f(30.0, "> 0 (m: a cell is compared where the sender and another agent are within this of it)",
                        _pos)
