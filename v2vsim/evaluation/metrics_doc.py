@@ -67,7 +67,9 @@ def metrics_json(summary: RunSummary, scores: dict[str, MethodScore], comm: Comm
         **({"driving": summary.driving} if summary.driving is not None else {}),
         # misbehaviour: an attacked run says so in its metrics (v2vsim/comm/misbehaviour.py)
         **({"misbehaviour": [dataclasses.asdict(lie) for lie in sc.misbehaviour]} if sc.misbehaviour else {}),
-        # the ego's misbehaviour check (defence.detect / exclude): per sender the frames compared and flagged
+        # the ego's misbehaviour check (defence.detect / exclude): per sender the frames compared and flagged;
+        # with defence.evidence its claims against the rays and its pose against the map (`evidence`), with
+        # defence.remember its reputation per frame (`reputation`)
         **({"defence": summary.defence} if summary.defence is not None else {}),
         # cavs.penetration: which placed vehicles were connected (the others drove as SUMO's, silent)
         **({"penetration": {"share": sc.cavs.penetration, "connected": connected}}

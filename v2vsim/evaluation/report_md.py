@@ -115,8 +115,19 @@ def defence_line(d: dict) -> str:
     what = "fused without a sender in the frames it was flagged" if d["exclude"] else "detection only"
     per = ", ".join(f"{s} flagged in {v['frames_flagged']} of {v['frames_compared']} frames compared"
                     for s, v in d["senders"].items()) or "no sender shared enough cells to be compared"
-    return (f"**Misbehaviour check** (`defence`, {what}; thresholds road {d['road_threshold']:g}, vehicle "
+    line = (f"**Misbehaviour check** (`defence`, {what}; thresholds road {d['road_threshold']:g}, vehicle "
             f"{d['vehicle_threshold_m2']:g} m^2 within {d['near_m']:g} m): {per}.")
+    if (ev := d.get("evidence")) is not None:  # defence.evidence: the rays and the map (issue 67)
+        line += (" Against the agents' rays and the map (largest phantom / removed / unclaimed area, frames "
+                 "flagged by them): " + (", ".join(
+                     f"{s} {v['max_phantom_m2']:g} / {v['max_removed_m2']:g} / {v['max_unclaimed_m2']:g} m^2, "
+                     f"{sum(1 for r in v['per_frame'] if r[9])} of {v['frames']}" for s, v in ev.items())
+                     or "no sender's evidence arrived") + ".")
+    if (rep := d.get("reputation")) is not None:
+        line += (" Reputation (`defence.remember`): " + (", ".join(
+            f"{s} untrusted in {v['frames_untrusted']} frames (lowest {v['min']:.2f})"
+            for s, v in rep["senders"].items()) or "no sender") + ".")
+    return line
 
 
 def report_md(doc: dict, summary: RunSummary) -> str:
