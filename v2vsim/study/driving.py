@@ -27,14 +27,17 @@ EITHER = "collisions_or_near_misses"  # 0/1 per run: a collision or a near miss 
 EFFICIENCY = "efficiency"  # the oracle's completion time over the run's, same configuration (v2vsim/control/score.py)
 ORACLE = "oracle"
 MEASURES = ("driving_score", "success", "route_completion", EFFICIENCY, "collisions", "near_misses", EITHER,
-            "min_ttc_s", "min_gap_m", "time_to_clear_s", "hard_braking", "phantom_braking")
+            "min_ttc_s", "min_gap_m", "time_to_clear_s", "hard_braking", "phantom_braking",
+            "safety_score", "close_calls")  # the last two: v2vsim/control/score.py (issue 67)
 LABELS = {"driving_score": "driving score (0-1)", "success": "share of runs that succeeded",
           "route_completion": "route completion (0-1)",
           EFFICIENCY: "efficiency (the oracle's completion time over the run's)",
           "collisions": "collisions per run", "near_misses": "near misses per run (driven vehicles with one)",
           EITHER: "share of runs with a collision or near miss", "min_ttc_s": "min TTC (s)",
           "min_gap_m": "min gap (m)", "time_to_clear_s": "time to clear the junction (s)",
-          "hard_braking": "hard-braking onsets per run", "phantom_braking": "phantom-braking onsets per run"}
+          "hard_braking": "hard-braking onsets per run", "phantom_braking": "phantom-braking onsets per run",
+          "safety_score": "safety-weighted driving score (0-1)",
+          "close_calls": "close calls per run (driven vehicles with one)"}
 
 
 @dataclass(frozen=True)
