@@ -32,12 +32,13 @@ CONTRACT_METHOD_KEYS = {"iou_vehicle", "iou_vehicle_frame_mean", "iou_road", "io
 
 
 class Run:
-    """`v2vsim run` as a child process whose stderr is read line by line. Its agents fork from the suite's warm
-    starter (tests/conftest.py) unless `cold`: a test that finds an agent to kill or inspect among the runner's
-    children, by its command line, needs them started cold, since a forked agent is the starter's child and shares
-    its command line (tests/v2vsim/test_launch.py shows a fork behaves as a cold process otherwise)."""
+    """`v2vsim run` as a child process whose stderr is read line by line. Its agents start cold unless `cold` is
+    false: a test that finds an agent to kill or inspect among the runner's children, by its command line, needs
+    them cold, since a forked agent is the warm starter's child and shares its command line; a test that only reads
+    what the run wrote forks them from the suite's warm starter (tests/conftest.py; tests/v2vsim/test_launch.py
+    shows a fork behaves as a cold process otherwise)."""
 
-    def __init__(self, *args: str, scenario: str = SCENARIO, cold: bool = False) -> None:
+    def __init__(self, *args: str, scenario: str = SCENARIO, cold: bool = True) -> None:
         env = {**os.environ, MODE_ENV: "cold"} if cold else dict(os.environ)
         self.proc = subprocess.Popen([sys.executable, "-m", "v2vsim.cli", "run", scenario, *args],
                                      stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, cwd=REPO,
@@ -124,7 +125,7 @@ def test_run_writes_report_metrics_recording_and_plots(tmp_path: Path) -> None:
     key = tmp_path / "v2v.key"
     key.write_text("a shared secret\n")
     run = Run("--frames", "4", "--out", str(out), "--set", "cavs.count=3", "--set", "comm.range_m=300",
-              "--set", f"comm.auth.key_file={key}")  # every message signed and checked
+              "--set", f"comm.auth.key_file={key}", cold=False)  # every message signed and checked
     assert run.finish() == 0, "".join(run.log)
     # one progress display, the runner's (stderr is not a terminal: a plain line per frame for 4 frames),
     # and no per-process progress lines or raw progress records
@@ -222,7 +223,7 @@ def test_the_camera_scenario_runs_its_shipped_zoo(tmp_path: Path) -> None:
 
 def test_ctrl_c_stops_every_process_and_writes_partial_report(tmp_path: Path) -> None:
     out = tmp_path / "run"
-    run = Run("--frames", "400", "--out", str(out), "--set", "cavs.count=2", "--methods", "none,cobevt", cold=True)
+    run = Run("--frames", "400", "--out", str(out), "--set", "cavs.count=2", "--methods", "none,cobevt")
     run.wait_frames(20)
     children = run.children()
     assert len(children) >= 4
@@ -262,7 +263,7 @@ def test_sigkilled_runner_leaves_no_orphans(tmp_path: Path) -> None:
     """issue 8 item 6: the children get SIGTERM when the runner dies (PR_SET_PDEATHSIG)."""
     out = tmp_path / "run"
     run = Run("--frames", "400", "--out", str(out), "--set", "cavs.count=2", "--methods", "none",
-              "--set", "output.rerun=false", cold=True)
+              "--set", "output.rerun=false")
     run.wait_frames(2)
     children = run.children()
     assert len(children) == 4, [p.cmdline() for p in children]
@@ -282,7 +283,7 @@ def test_killed_driver_is_reported_and_every_process_stops(tmp_path: Path) -> No
     """issue 8 item 9: the runner says the driver died, exits non-zero, and stops the rest promptly."""
     out = tmp_path / "run"
     run = Run("--frames", "400", "--out", str(out), "--set", "cavs.count=2", "--methods", "none",
-              "--set", "output.rerun=false", cold=True)
+              "--set", "output.rerun=false")
     run.wait_frames(2)
     children = run.children()
     drivers = _agents(run, "agents.driver")
@@ -304,7 +305,7 @@ def test_killed_ego_leaves_a_metrics_json_that_says_so(tmp_path: Path) -> None:
     """issue 34 item 9: a SIGKILLed ego writes nothing; the runner writes metrics.json with why."""
     out = tmp_path / "run"
     run = Run("--frames", "400", "--out", str(out), "--set", "cavs.count=2", "--methods", "none",
-              "--set", "output.rerun=false", cold=True)
+              "--set", "output.rerun=false")
     run.wait_frames(2)
     egos = _agents(run, "agents.ego")
     assert len(egos) == 1
@@ -375,7 +376,7 @@ def test_malformed_messages_are_rejected_over_a_router(tmp_path: Path) -> None:
         out = tmp_path / "run"
         run = Run("--frames", "40", "--out", str(out), "--run-id", "rogue1", "--set", "cavs.count=2",
                   "--methods", "none,cobevt", "--set", "transport.mode=client",
-                  "--set", f"transport.connect=[{endpoint}]", "--set", "comm.auth.identity=off", cold=True)
+                  "--set", f"transport.connect=[{endpoint}]", "--set", "comm.auth.identity=off")
         run.wait_frames(20)
         cfg = zenoh.Config()
         for k, v in {"mode": "client", "scouting/multicast/enabled": False, "scouting/gossip/enabled": False,
@@ -438,9 +439,9 @@ def test_lockstep_runs_are_deterministic_for_a_seed_pipelined_or_not(tmp_path: P
             "--set", "comm.pose_noise={xy_std_m: 0.3, yaw_std_deg: 1.0}", "--set", "output.rerun=false"]
     # ... and one method at a time or all three at once (perception.fusion_threads): the same predictions
     a = Run(*args, "--set", "transport.pipeline=0", "--set", "perception.fusion_threads=1",
-            "--out", str(tmp_path / "a"))
+            "--out", str(tmp_path / "a"), cold=False)
     b = Run(*args, "--set", "transport.pipeline=3", "--set", "perception.fusion_threads=3",
-            "--out", str(tmp_path / "b"))
+            "--out", str(tmp_path / "b"), cold=False)
     assert a.finish() == 0 and b.finish() == 0, "".join(a.log + b.log)
     ma, mb = _metrics(tmp_path / "a"), _metrics(tmp_path / "b")
     assert (ma["pipeline"], mb["pipeline"]) == (0, 3)
@@ -463,7 +464,7 @@ def test_lockstep_runs_are_deterministic_for_a_seed_pipelined_or_not(tmp_path: P
 def test_realtime_clock_runs_on_the_wall_clock(tmp_path: Path) -> None:
     out = tmp_path / "run"
     run = Run("--frames", "30", "--out", str(out), "--set", "cavs.count=2", "--methods", "none,fcooper",
-              "--set", "transport.clock=realtime", "--set", "output.rerun=false")
+              "--set", "transport.clock=realtime", "--set", "output.rerun=false", cold=False)
     assert run.finish() == 0, "".join(run.log)
     m = _metrics(out)
     assert m["clock"] == "realtime" and 0 < m["frames"] <= 30
@@ -478,7 +479,7 @@ def test_a_cav_that_leaves_ends_its_agent_and_the_run_goes_on(tmp_path: Path) ->
     run = Run("--frames", "120", "--out", str(out), "--set", "cavs.count=2", "--set", "cavs.ego=[cav1]",
               "--set", "rate_hz=5", "--set", "cavs.meet.trials=1", "--methods", "none", "--set", "output.rerun=false",
               "--set", "sensors.lidar.channels=4", "--set", "sensors.lidar.points_per_channel=128",
-              scenario=str(REPO / "scenarios" / "t_junction.yaml"))
+              scenario=str(REPO / "scenarios" / "t_junction.yaml"), cold=False)
     assert run.finish() == 0, "".join(run.log)
     m = _metrics(out)
     assert m["ego"] == "cav1" and m["frames"] == 120 and m["status"] == "complete"
@@ -492,7 +493,8 @@ def test_a_run_with_comm_share_topk_sends_sparse_features(tmp_path: Path) -> Non
     accepts (nothing rejected) and fuses; the bytes are the sparse messages' (an eighth of a dense map's)."""
     out = tmp_path / "run"
     run = Run("--frames", "3", "--out", str(out), "--methods", "none,cobevt", "--set", "output.rerun=false",
-              "--set", "comm.share.policy=topk", "--set", "comm.share.fraction=0.1", "--set", "comm.range_m=300")
+              "--set", "comm.share.policy=topk", "--set", "comm.share.fraction=0.1", "--set", "comm.range_m=300",
+              cold=False)
     assert run.finish() == 0, "".join(run.log)
     m = _metrics(out)
     assert m["comm"]["rejected"] == 0 and m["comm"]["delivered"] > 0
@@ -517,7 +519,7 @@ def test_compensation_with_zero_latency_changes_nothing(tmp_path: Path) -> None:
     # only when matched to the sender's previous one at >= 0.5 m/s), so compensation may not change a thing yet
     run = Run("--frames", "16", "--set", "cavs.count=3", "--set", "comm.range_m=300", "--methods", "none,late,cobevt",
               "--set", "output.rerun=false", "--set", "output.record_messages=true",
-              "--out", str(tmp_path / "late_off"))
+              "--out", str(tmp_path / "late_off"), cold=False)
     assert run.finish() == 0, "".join(run.log)
     rec = tmp_path / "late_off"
     ideal = ["--frames", "8", "--set", "comm.bandwidth_mbps=null"]
@@ -544,8 +546,8 @@ def test_a_method_scores_the_same_whatever_other_methods_run(tmp_path: Path) -> 
     still warp its features with the features' capture pose, so running late and early beside it changes
     nothing for it (each method fuses with the poses of the messages it fuses)."""
     args = ["--frames", "8", "--set", "cavs.count=3", "--set", "comm.range_m=300", "--set", "output.rerun=false"]
-    a = Run(*args, "--methods", "none,cobevt", "--out", str(tmp_path / "a"))
-    b = Run(*args, "--methods", "none,late,early,cobevt", "--out", str(tmp_path / "b"))
+    a = Run(*args, "--methods", "none,cobevt", "--out", str(tmp_path / "a"), cold=False)
+    b = Run(*args, "--methods", "none,late,early,cobevt", "--out", str(tmp_path / "b"), cold=False)
     assert a.finish() == 0 and b.finish() == 0, "".join(a.log + b.log)
     ma, mb = _metrics(tmp_path / "a"), _metrics(tmp_path / "b")
     assert set(mb["comm"]["by_kind"]["outputs"]["age_ms"]["buckets"]) == {"100"}  # outputs a frame old
