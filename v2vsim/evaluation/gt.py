@@ -94,12 +94,7 @@ def bev_ground_truth(world: WorldState, ego_id: str, bev: BevConfig, visible_ids
         assets = build_map_assets(world.static, gt_lane_width_m=2 * grid.res)
     boxes, ids = _ego_boxes(world, ego_id)
     vis = np.array([i in visible_ids for i in ids], dtype=bool)
-    ego = world.actors[actor_index(world, ego_id)].pose
-    centres = grid.cell_centres()
-    c, s = math.cos(ego.yaw), math.sin(ego.yaw)
-    wxy = np.stack([ego.x + c * centres[..., 0] - s * centres[..., 1],
-                    ego.y + s * centres[..., 0] + c * centres[..., 1]], axis=-1)
-    bits = assets.ground.sample(wxy)
+    bits = _map_bits(assets.ground, world.actors[actor_index(world, ego_id)].pose, grid)
     out = {
         "dynamic": rasterise_boxes(boxes, grid),
         "visible": rasterise_boxes(boxes[vis], grid),
@@ -111,14 +106,19 @@ def bev_ground_truth(world: WorldState, ego_id: str, bev: BevConfig, visible_ids
     return out
 
 
-def map_layer(ground: GroundRaster, pose: Pose, size_m: float, cells: int, bit: int) -> np.ndarray:
-    """[cells, cells] bool: the cells of a `size_m` grid around `pose` (its body frame) whose centre the map
-    raster marks with `bit` (GROUND_ROAD, GROUND_BUILDING, ...)."""
-    centres = BevGrid(size_m, cells).cell_centres()
+def _map_bits(ground: GroundRaster, pose: Pose, grid: BevGrid) -> np.ndarray:
+    """The map raster's GROUND_* bits at the centre of each cell of `grid` around `pose` (its body frame)."""
+    centres = grid.cell_centres()
     c, s = math.cos(pose.yaw), math.sin(pose.yaw)
     wxy = np.stack([pose.x + c * centres[..., 0] - s * centres[..., 1],
                     pose.y + s * centres[..., 0] + c * centres[..., 1]], axis=-1)
-    return (ground.sample(wxy) & bit) > 0
+    return ground.sample(wxy)
+
+
+def map_layer(ground: GroundRaster, pose: Pose, size_m: float, cells: int, bit: int) -> np.ndarray:
+    """[cells, cells] bool: the cells of a `size_m` grid around `pose` whose centre the map raster marks with `bit`
+    (GROUND_ROAD, GROUND_BUILDING, ...)."""
+    return (_map_bits(ground, pose, BevGrid(size_m, cells)) & bit) > 0
 
 
 def visible_actor_ids(lidar_sweeps: Iterable[LidarSweep], camera_frames: Iterable[CameraFrame],
