@@ -212,11 +212,11 @@ def fuse(ego: Ego, run: EgoRun, k: int, world: WorldState) -> tuple[FusedFrame, 
     flagged: set[str] = set()
     if nets.sender_check is not None:  # the map's drivable area is map knowledge, not the frame's ground truth
         with timer.stage("consistency"):
+            pose = world.actor(me).pose  # type: ignore[union-attr]
             buildings = None
             if sc.defence.evidence:  # the map's buildings, for the senders' walls (v2vsim/perception/evidence_check)
-                pose = world.actor(me).pose  # type: ignore[union-attr]
                 buildings = map_layer(ego.assets.ground, pose, sc.bev.size_m, MAX_CELLS, GROUND_BUILDING)
-            inp, flagged = nets.sender_check.check(k, inp, gt["road"], buildings)
+            inp, flagged = nets.sender_check.check(k, inp, gt["road"], buildings, (pose.x, pose.y, pose.yaw))
     preds = predict_all(nets.models, inp, sc.bev.cells, nets.precision, ego.memo, ego.pool,
                         cost=None if ego.pool is None else timer.method_ms())
     for m, pred in preds.items():

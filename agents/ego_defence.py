@@ -8,12 +8,24 @@ import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
+import torch
 from torch import nn
 
 from v2vsim.config.schema import Scenario
 from v2vsim.config.schema_misbehaviour import DefenceConfig
 from v2vsim.perception.consistency import MAX_CELLS, VEHICLE, Disagreement, check_frame, decode_alone, without
-from v2vsim.perception.evidence_check import check_evidence, pose_check
+from v2vsim.perception.evidence_check import (
+    EgoGridEvidence,
+    LaterClaim,
+    LaterVerdict,
+    judge_claims,
+    later_claims,
+    later_view_check,
+    on_ego_grid,
+    pose_check,
+    road_on_grid,
+    wall_outlines,
+)
 from v2vsim.perception.fuse import FusionInputs
 from v2vsim.perception.precision import Precision
 from v2vsim.perception.reputation import Standing, update
@@ -29,9 +41,13 @@ class SenderCheck:
     # sender -> per frame compared: (frame, road, vehicle_m2, shared_m2, flagged, road_corr, road_vs_map)
     frames: dict[str, list[tuple]] = field(default_factory=dict)
     # defence.evidence: sender -> per frame with evidence (frame, phantom_m2, removed_m2, unclaimed_m2, witnessed_m2,
-    # pose_shift_m, pose_turn_deg, on_map, on_map_corrected, flagged): its claims against the agents' rays and its
-    # pose against the map (v2vsim/perception/evidence_check.py), judged by the thresholds that are set
+    # pose_shift_m, pose_turn_deg, on_map, on_map_corrected, flagged, later_frame, later_phantom_m2,
+    # later_removed_m2): its claims against the agents' rays, its pose against the map and its claims of
+    # later_frame against the ego's own rays now (v2vsim/perception/evidence_check.py; the last three null where
+    # no claim of defence.later_frames ago is kept), judged by the thresholds that are set
     evidence: dict[str, list[tuple]] = field(default_factory=dict)
+    # defence.later_frames: frame -> sender -> its claims then, kept until the ego's rays judge them
+    later: dict[int, dict[str, LaterClaim]] = field(default_factory=dict)
     # defence.remember: each sender's standing, and per frame it was present (frame, reputation, trusted)
     standing: dict[str, Standing] = field(default_factory=dict)
     reputation: dict[str, list[tuple]] = field(default_factory=dict)
@@ -46,10 +62,12 @@ class SenderCheck:
         self.cfg = dataclasses.replace(self.sc.defence, road_threshold=self.sc.defence.road_limit(cameras))
 
     def check(self, k: int, inp: FusionInputs, road_map: np.ndarray | None = None,
-              buildings: np.ndarray | None = None) -> tuple[FusionInputs, set[str]]:
+              buildings: np.ndarray | None = None,
+              ego_pose: tuple[float, float, float] | None = None) -> tuple[FusionInputs, set[str]]:
         """Frame k: score and flag the senders; the inputs every method fuses (without the flagged ones when the
         defence excludes) and the flagged senders. `road_map`: the drivable area of the ego's map on its grid;
-        `buildings` (defence.evidence): its buildings' footprints on a MAX_CELLS grid."""
+        `buildings` (defence.evidence): its buildings' footprints on a MAX_CELLS grid; `ego_pose`: its world
+        (x, y, yaw), for the later view (None: no later view)."""
         cfg = self.cfg
         ego = inp.senders[0]
         scores: dict[str, list[Disagreement]] = {}
@@ -57,7 +75,7 @@ class SenderCheck:
         all_maps = self._maps(inp)
         ev_judged: set[str] = set()
         if cfg.evidence and inp.evidence:
-            ev_judged, ev_flagged = self._record_evidence(k, inp, all_maps, road_map, buildings)
+            ev_judged, ev_flagged = self._record_evidence(k, inp, all_maps, road_map, buildings, ego_pose)
             hits |= ev_flagged
         for kind, maps in all_maps.items():  # flagged on any kind it sent
             poses = inp.poses_by_kind.get(kind, inp.rel_poses)
@@ -108,10 +126,11 @@ class SenderCheck:
         return out
 
     def _record_evidence(self, k: int, inp: FusionInputs, maps: dict[str, dict[str, np.ndarray]],
-                         road_map: np.ndarray | None, buildings: np.ndarray | None) -> tuple[set[str], set[str]]:
+                         road_map: np.ndarray | None, buildings: np.ndarray | None,
+                         ego_pose: tuple[float, float, float] | None) -> tuple[set[str], set[str]]:
         """Each sender's vehicle claims (its features decoded alone, else its outputs) against the agents' rays,
-        and the pose it claims against the map's buildings; the senders judged by a figure that has a threshold,
-        and those flagged by one."""
+        the pose it claims against the map's buildings, and its claims of defence.later_frames ago against the
+        ego's own rays now; the senders judged by a figure that has a threshold, and those flagged by one."""
         cfg = self.cfg
         limits = {1: cfg.phantom_threshold_m2, 2: cfg.removed_threshold_m2, 3: cfg.unclaimed_threshold_m2}
         judged: set[str] = set()
@@ -119,22 +138,51 @@ class SenderCheck:
         vehicle = {s: m[VEHICLE] for kind in ("outputs", "features") for s, m in maps.get(kind, {}).items()}
         kind_of = {s: kind for kind in ("outputs", "features") for s in maps.get(kind, {})}
         poses = {s: inp.poses_by_kind.get(kind_of[s], inp.rel_poses)[inp.senders.index(s)] for s in vehicle}
-        verdicts = check_evidence(vehicle, inp.evidence, poses, self.sc.bev.size_m, MAX_CELLS, road_map)
+        ego, size_m = inp.senders[0], self.sc.bev.size_m
+        vehicle = {ego: vehicle.pop(ego), **vehicle} if ego in vehicle else vehicle  # the ego first on the grid
+        grid = on_ego_grid(vehicle, inp.evidence, poses, size_m, MAX_CELLS)
+        if grid is None:
+            return judged, flagged
+        road = None if road_map is None else road_on_grid(road_map, MAX_CELLS)
+        verdicts = judge_claims(grid, size_m, road)
+        later = self._later_view(k, grid, poses, road, ego_pose) if grid.names[0] == ego else {}  # the ego's rays
+        outlines = None if buildings is None else wall_outlines(buildings)  # once a frame, for every sender
         for s, v in verdicts.items():
-            if s == inp.senders[0]:
+            if s == ego:
                 continue
-            pv = None if buildings is None else pose_check(inp.evidence[s], poses[s], buildings, self.sc.bev.size_m)
+            pv = None if outlines is None else pose_check(inp.evidence[s], poses[s], buildings, size_m, outlines)
+            lv = later.get(s)
             row = (k, v.phantom_m2, v.removed_m2, v.unclaimed_m2, v.witnessed_m2,
                    *((None,) * 4 if pv is None else (pv.shift_m, pv.turn_deg, pv.on_map, pv.on_map_corrected)))
             past = [row[i] > lim for i, lim in limits.items() if lim is not None]
             if pv is not None and cfg.pose_gain_threshold is not None:
                 past.append(pv.on_map_corrected - pv.on_map > cfg.pose_gain_threshold)
+            if lv is not None and cfg.later_threshold_m2 is not None:
+                past.append(max(lv.phantom_m2, lv.removed_m2) > cfg.later_threshold_m2)
             if past:
                 judged.add(s)
             if any(past):
                 flagged.add(s)
-            self.evidence.setdefault(s, []).append((*row, any(past)))
+            self.evidence.setdefault(s, []).append(
+                (*row, any(past), *((None,) * 3 if lv is None else (lv.frame, lv.phantom_m2, lv.removed_m2))))
         return judged, flagged
+
+    def _later_view(self, k: int, grid: EgoGridEvidence, poses: dict[str, np.ndarray], road: torch.Tensor | None,
+                    ego_pose: tuple[float, float, float] | None) -> dict[str, LaterVerdict]:
+        """Keep frame k's claims; judge those of defence.later_frames ago by the ego's rays now (sender ->
+        LaterVerdict; empty where the ego's own evidence or pose is missing or the later view is off)."""
+        cfg, d = self.cfg, self.cfg.later_frames
+        if d == 0 or ego_pose is None:
+            return {}
+        size_m = self.sc.bev.size_m
+        self.later[k] = later_claims(grid, poses, k, ego_pose, size_m)
+        for old in [f for f in self.later if f < k - d]:
+            del self.later[old]
+        # reach: the move of a vehicle at later_speed_mps over the frames between, and one frame more for the age
+        # of the message the claim came in
+        reach = cfg.later_speed_mps * (d + 1) * self.sc.dt
+        return {s: later_view_check(c, grid, ego_pose, road, reach, size_m)
+                for s, c in self.later.get(k - d, {}).items()}
 
     def _maps(self, inp: FusionInputs) -> dict[str, dict[str, np.ndarray]]:
         """Per message kind, each sender's single-agent maps [3, S, S]: its features decoded alone; late fusion's

@@ -17,12 +17,14 @@ from pathlib import Path
 import numpy as np
 
 # per-frame row of metrics.json defence.evidence (agents/ego_defence.py): figure -> its column, and how it is read
-FIGURES = {"phantom_m2": 1, "removed_m2": 2, "unclaimed_m2": 3, "pose_gain": None}
+FIGURES = {"phantom_m2": 1, "removed_m2": 2, "unclaimed_m2": 3, "pose_gain": None, "later_m2": None}
 
 
 def _value(row: list, name: str) -> float | None:
     if name == "pose_gain":  # walls on the map after the best correction minus as claimed
         return None if row[7] is None else float(row[8]) - float(row[7])
+    if name == "later_m2":  # the ego's later view: the larger of its phantom and removed areas (null: none kept)
+        return None if len(row) < 13 or row[11] is None else max(float(row[11]), float(row[12]))
     return float(row[FIGURES[name]])
 
 

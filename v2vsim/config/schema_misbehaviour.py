@@ -57,6 +57,12 @@ class DefenceConfig:
     pose_gain_threshold: float | None = _f(None, "null or 0..1 (the share of its wall hits a pose correction puts "
                                                  "on the map's buildings beyond the claimed pose's)",
                                            lambda v: 0 <= v <= 1)
+    # the ego's own later view (evidence_check.later_view_check): a sender's claims are checked against the ego's
+    # own rays this many frames later (0: never), allowing for a vehicle's move at up to later_speed_mps since
+    later_frames: int = _f(3, ">= 0 (frames)", lambda v: v >= 0)
+    later_speed_mps: float = _f(15.0, "> 0 (m/s: how fast a claimed vehicle may have moved on since)", _pos)
+    later_threshold_m2: float | None = _f(None, "null or >= 0 (m^2 of its claimed vehicles the ego's rays later find "
+                                                "nowhere, or of vehicles the ego sees where it vouched empty)", _nonneg)
     exclude: bool = False  # the defence: every method fuses without the senders flagged at that frame (implies detect)
     near_m: float = _f(30.0, "> 0 (m: a cell is compared where the sender and another agent are within this of it)",
                        _pos)

@@ -35,6 +35,7 @@ import torch.nn.functional as F
 
 from models.warp import warp_to_ego
 from v2vsim.perception.evidence import FREE, OCCUPIED
+from v2vsim.world.geometry import Pose, relative_pose
 
 CLAIM, NO_CLAIM = 0.5, 0.25  # a vehicle claimed above CLAIM; nothing claimed below NO_CLAIM (between: unsure)
 POSE_SHIFT_CELLS = 5  # the correction's shift is searched over +-5 cells (+-3.9 m at 0.78 m) on each axis ...
@@ -62,16 +63,26 @@ def _planes(evidence: np.ndarray, cells: int) -> torch.Tensor:
     return F.interpolate(planes, size=(cells, cells), mode="nearest")[0]
 
 
-def check_evidence(vehicle: dict[str, np.ndarray], evidence: dict[str, np.ndarray], poses: dict[str, np.ndarray],
-                   size_m: float, cells: int, road_map: np.ndarray | None = None) -> dict[str, EvidenceVerdict]:
-    """Per agent with both a vehicle map and evidence: its verdict against every other such agent.
+@dataclass(frozen=True)
+class EgoGridEvidence:
+    """Every agent's claims and rays warped onto the ego grid at one frame by the poses they claim (plain tensors,
+    [L, G, G] each, agents in `names` order): what the checks below read."""
 
-    vehicle: agent -> [S, S] vehicle probability in its own frame; evidence: agent -> [F, F] uint8 in its own
-    frame; poses: agent -> (dx, dy, dyaw) it claims in the ego frame (the ego (0, 0, 0)); cells: the comparison
-    grid G; road_map: the drivable area of the ego's HD map on its grid (bool, any size; None: no unclaimed)."""
+    names: list[str]
+    vehicle: torch.Tensor  # float, its vehicle probability
+    clear: torch.Tensor  # bool, free with the cells around free too (_planes)
+    free: torch.Tensor  # bool
+    occupied: torch.Tensor  # bool
+
+
+def on_ego_grid(vehicle: dict[str, np.ndarray], evidence: dict[str, np.ndarray], poses: dict[str, np.ndarray],
+                size_m: float, cells: int) -> EgoGridEvidence | None:
+    """vehicle: agent -> [S, S] vehicle probability in its own frame; evidence: agent -> [F, F] uint8 in its own
+    frame; poses: agent -> (dx, dy, dyaw) it claims in the ego frame (the ego (0, 0, 0)); cells: the grid G. None
+    when no agent has both a vehicle map and evidence."""
     names = [s for s in vehicle if s in evidence and s in poses]
     if not names:
-        return {}
+        return None
     veh = torch.from_numpy(np.stack([np.asarray(vehicle[s], np.float32) for s in names]))[:, None]  # [L, 1, S, S]
     if veh.shape[-1] != cells:
         veh = F.adaptive_avg_pool2d(veh, cells)
@@ -79,13 +90,30 @@ def check_evidence(vehicle: dict[str, np.ndarray], evidence: dict[str, np.ndarra
     rel = torch.from_numpy(np.stack([np.asarray(poses[s], np.float32) for s in names]))  # [L, 3]
     v, _ = warp_to_ego(veh, rel, size_m)  # [L, 1, G, G]
     e, _ = warp_to_ego(ev, rel, size_m, mode="nearest")  # [L, 3, G, G]
-    v, clear, free, occ = v[:, 0], e[:, 0] > 0.5, e[:, 1] > 0.5, e[:, 2] > 0.5  # [L, G, G] each
+    return EgoGridEvidence(names, v[:, 0], e[:, 0] > 0.5, e[:, 1] > 0.5, e[:, 2] > 0.5)
+
+
+def road_on_grid(road_map: np.ndarray, cells: int) -> torch.Tensor:
+    """The drivable area (bool, any size) on the comparison grid: [G, G] bool."""
+    rm = torch.from_numpy(np.asarray(road_map, np.float32))[None, None]
+    return F.adaptive_avg_pool2d(rm, cells)[0, 0] > 0.5
+
+
+def check_evidence(vehicle: dict[str, np.ndarray], evidence: dict[str, np.ndarray], poses: dict[str, np.ndarray],
+                   size_m: float, cells: int, road_map: np.ndarray | None = None) -> dict[str, EvidenceVerdict]:
+    """Per agent with both a vehicle map and evidence: its verdict against every other such agent (arguments as
+    on_ego_grid's; road_map: the drivable area of the ego's HD map on its grid, bool, any size; None: no
+    unclaimed)."""
+    grid = on_ego_grid(vehicle, evidence, poses, size_m, cells)
+    road = None if road_map is None else road_on_grid(road_map, cells)
+    return {} if grid is None else judge_claims(grid, size_m, road)
+
+
+def judge_claims(grid: EgoGridEvidence, size_m: float, road: torch.Tensor | None) -> dict[str, EvidenceVerdict]:
+    """check_evidence on evidence already on the ego grid (road: [G, G] bool or None)."""
+    names, v, clear, free, occ = grid.names, grid.vehicle, grid.clear, grid.free, grid.occupied
     seen = occ & (v > CLAIM)  # a vehicle an agent both maps and stops its rays on
-    road = None
-    if road_map is not None:
-        rm = torch.from_numpy(np.asarray(road_map, np.float32))[None, None]
-        road = F.adaptive_avg_pool2d(rm, cells)[0, 0] > 0.5  # [G, G]
-    cell_m2 = (size_m / cells) ** 2
+    cell_m2 = (size_m / v.shape[-1]) ** 2
     out: dict[str, EvidenceVerdict] = {}
     for i, s in enumerate(names):
         others = [j for j in range(len(names)) if j != i]
@@ -114,10 +142,19 @@ class PoseVerdict:
     hits: int  # the hits it was judged on (cells where its rays stopped)
 
 
-def pose_check(evidence: np.ndarray, pose: np.ndarray, buildings: np.ndarray, size_m: float) -> PoseVerdict | None:
+def wall_outlines(buildings: np.ndarray) -> torch.Tensor:
+    """The buildings' outlines, a cell either side (where a wall's hits fall): [E, E] float from [E, E] bool."""
+    b = torch.from_numpy(np.asarray(buildings, np.float32))[None, None]
+    grown, shrunk = F.max_pool2d(b, 3, stride=1, padding=1), -F.max_pool2d(-b, 3, stride=1, padding=1)
+    return (grown - shrunk)[0, 0]
+
+
+def pose_check(evidence: np.ndarray, pose: np.ndarray, buildings: np.ndarray, size_m: float,
+               outlines: torch.Tensor | None = None) -> PoseVerdict | None:
     """evidence: the sender's [E, E] grid in its own frame; pose: its claimed (dx, dy, dyaw) in the ego frame;
-    buildings: the HD map's building footprints on the ego grid ([E, E] bool, the same extent). None when its rays
-    hit no building cell under any correction (nothing to judge by)."""
+    buildings: the HD map's building footprints on the ego grid ([E, E] bool, the same extent); outlines: their
+    wall_outlines, where the caller judges several senders on one map. None when its rays hit no building cell
+    under any correction (nothing to judge by)."""
     cells = buildings.shape[-1]
     occ = torch.from_numpy(np.asarray(evidence) == OCCUPIED).float()
     if occ.shape[-1] != cells:
@@ -129,9 +166,7 @@ def pose_check(evidence: np.ndarray, pose: np.ndarray, buildings: np.ndarray, si
     rel[:, 2] += torch.deg2rad(torch.tensor(POSE_TURNS_DEG))
     turned, _ = warp_to_ego(occ[None, None].expand(len(POSE_TURNS_DEG), 1, cells, cells).contiguous(), rel, size_m,
                             mode="nearest")  # [T, 1, G, G]
-    b = torch.from_numpy(np.asarray(buildings, np.float32))[None, None]
-    grown, shrunk = F.max_pool2d(b, 3, stride=1, padding=1), -F.max_pool2d(-b, 3, stride=1, padding=1)
-    walls = (grown - shrunk)[0, 0]  # the buildings' outlines, a cell either side: where a wall's hits fall
+    walls = wall_outlines(buildings) if outlines is None else outlines
     # circular cross-correlation of each turned hit map with the grown buildings: score[t, i, j] = hits on a
     # building after shifting by (i, j) cells (rows forward, columns left); shifts past +-POSE_SHIFT_CELLS ignored
     score = torch.fft.irfft2(torch.fft.rfft2(walls)[None] * torch.conj(torch.fft.rfft2(turned[:, 0])), s=(cells, cells))
@@ -152,3 +187,83 @@ def pose_check(evidence: np.ndarray, pose: np.ndarray, buildings: np.ndarray, si
     res = size_m / cells
     return PoseVerdict(round(float(np.hypot(i, j)) * res, 2), POSE_TURNS_DEG[t], round(zero / kept, 3),
                        round(float(score[t, i + n, j + n]) / kept, 3), hits)
+
+
+# The ego's own later view (issue 67 item 2): what a sender claimed about a place is checked when the ego's own
+# rays reach it a few frames later. Vehicles move, so a claim is judged against every place the vehicle could have
+# reached since, a square of half-width reach_m (speed x time) around it, on the road only (cars keep to it):
+#
+#   later_phantom_m2(s)  = area s claimed a vehicle at then where every road cell within reach is now clear to the
+#                          ego's rays (the car it claimed cannot be anywhere now)
+#   later_removed_m2(s)  = area of a vehicle the ego now sees (its map p > 0.5 and its rays stopped) where s then
+#                          vouched every road cell within reach empty (its rays reached, it claimed nothing)
+#
+# The ego's own body is never clear in its own evidence, nor a sender's in its own (their rays start inside them).
+FOOTPRINT_M = 3.0  # an agent's own body: this far around its origin is never vouched for by its own rays
+
+
+@dataclass(frozen=True)
+class LaterClaim:
+    """What one sender told about the ego grid at one frame, kept for the ego's later view (on the ego grid then)."""
+
+    frame: int
+    ego_x: float  # the ego's world pose then
+    ego_y: float
+    ego_yaw: float
+    claimed: torch.Tensor  # [G, G] bool: it claimed a vehicle
+    empty: torch.Tensor  # [G, G] bool: its rays reached and it claimed nothing (its own body aside)
+
+
+@dataclass(frozen=True)
+class LaterVerdict:
+    """A sender's claims of `frame` against the ego's own rays now (areas in m^2)."""
+
+    frame: int  # the frame of the claims judged
+    phantom_m2: float
+    removed_m2: float
+
+
+def _near(cells: int, size_m: float, xy: tuple[float, float], radius_m: float) -> torch.Tensor:
+    """[G, G] bool: the cells whose centres lie within radius_m of the ego-frame point xy (rows forward, columns
+    left, as models/warp.py lays the grid out)."""
+    res = size_m / cells
+    centre = size_m / 2 - (torch.arange(cells, dtype=torch.float32) + 0.5) * res  # x of row i, y of column j
+    return (centre[:, None] - xy[0]) ** 2 + (centre[None, :] - xy[1]) ** 2 <= radius_m ** 2
+
+
+def later_claims(grid: EgoGridEvidence, poses: dict[str, np.ndarray], frame: int,
+                 ego_pose: tuple[float, float, float], size_m: float) -> dict[str, LaterClaim]:
+    """Each sender's claims on this frame's ego grid, to be judged when the ego's rays reach them (the ego, first
+    in grid.names, is judged by no one). ego_pose: the ego's world (x, y, yaw) now."""
+    cells = grid.vehicle.shape[-1]
+    out = {}
+    for i, s in enumerate(grid.names[1:], start=1):
+        body = _near(cells, size_m, (float(poses[s][0]), float(poses[s][1])), FOOTPRINT_M)
+        reached = grid.free[i] | grid.occupied[i]
+        out[s] = LaterClaim(frame, *ego_pose, grid.vehicle[i] > CLAIM, reached & (grid.vehicle[i] < NO_CLAIM) & ~body)
+    return out
+
+
+def later_view_check(then: LaterClaim, now: EgoGridEvidence, ego_pose: tuple[float, float, float],
+                     road: torch.Tensor | None, reach_m: float, size_m: float) -> LaterVerdict:
+    """A sender's claims of an earlier frame against the ego's own rays now (now.names[0] is the ego; road: the
+    drivable area on this frame's grid, [G, G] bool, None: everywhere)."""
+    cells = now.vehicle.shape[-1]
+    then_in_now = relative_pose(Pose(ego_pose[0], ego_pose[1], 0.0, ego_pose[2]),
+                                Pose(then.ego_x, then.ego_y, 0.0, then.ego_yaw))
+    rel = torch.tensor([then_in_now], dtype=torch.float32)  # [1, 3]: the ego's grid then, in its frame now
+    masks = torch.stack([then.claimed, then.empty]).float()[None]  # [1, 2, G, G]
+    warped, _ = warp_to_ego(masks, rel, size_m, mode="nearest")
+    claimed, empty = warped[0, 0] > 0.5, warped[0, 1] > 0.5  # outside then's grid: neither
+    on_road = torch.ones_like(claimed) if road is None else road
+    n = int(np.ceil(reach_m / (size_m / cells)))
+
+    def within_reach(mask: torch.Tensor) -> torch.Tensor:  # cells with a `mask` cell within n cells
+        return F.max_pool2d(mask.float()[None, None], 2 * n + 1, stride=1, padding=n)[0, 0] > 0.5
+
+    ego_clear = now.clear[0] & ~now.occupied[0] & ~_near(cells, size_m, (0.0, 0.0), FOOTPRINT_M)
+    phantom = claimed & ~within_reach(on_road & ~ego_clear)
+    seen = now.occupied[0] & (now.vehicle[0] > CLAIM)
+    removed = seen & ~within_reach(on_road & ~empty)
+    cell_m2 = (size_m / cells) ** 2
+    return LaterVerdict(then.frame, round(float(phantom.sum()) * cell_m2, 2), round(float(removed.sum()) * cell_m2, 2))

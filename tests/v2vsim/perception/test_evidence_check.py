@@ -104,3 +104,60 @@ def test_a_pose_told_two_metres_or_five_degrees_off_is_corrected_against_the_map
     turned = pose_check(ev, np.array([0.0, 0.0, np.radians(5.0)], np.float32), buildings, SIZE)
     assert turned is not None and turned.turn_deg in (-4.0, -6.0) and turned.on_map_corrected > turned.on_map
     assert pose_check(np.full_like(ev, UNKNOWN), EGO, buildings, SIZE) is None  # no hits: nothing to judge
+
+
+def _road() -> "torch.Tensor":
+    """A straight road, 8 m wide along the ego's x axis, on the comparison grid."""
+    import torch
+
+    r = np.zeros((G, G), bool)
+    r[_rows_cols(G, -50.0, 50.0, -4.0, 4.0)] = True
+    return torch.from_numpy(r)
+
+
+def test_the_egos_later_view_finds_a_phantom_gone_from_its_own_free_road_and_forgives_a_car_that_moved_on() -> None:
+    from v2vsim.perception.evidence_check import later_claims, later_view_check, on_ego_grid
+
+    road, reach = _road(), 15.0 * 0.4  # 15 m/s over 3 frames and one more at 10 Hz
+    # then (ego at the world origin): cav1, 20 m ahead, claims a car at ego x = 32..36 (cav1 x = 12..16)
+    then = on_ego_grid({"ego": _vehicle(), "cav1": _vehicle((12.0, 16.0, -1.0, 1.0))},
+                       {"ego": _evidence(), "cav1": _evidence()}, {"ego": EGO, "cav1": CAV1}, SIZE, G)
+    claims = later_claims(then, {"ego": EGO, "cav1": CAV1}, 3, (0.0, 0.0, 0.0), SIZE)
+    # now the ego has moved 3 m on (world x = 3): its rays reach the whole road out to 45 m, and clear
+    ego_pose = (3.0, 0.0, 0.0)
+    free_road = on_ego_grid({"ego": _vehicle()}, {"ego": _evidence(free=(-5.0, 45.0, -5.0, 5.0))}, {"ego": EGO},
+                            SIZE, G)
+    gone = later_view_check(claims["cav1"], free_road, ego_pose, road, reach, SIZE)
+    assert gone.frame == 3 and gone.phantom_m2 > 5.0 and gone.removed_m2 == 0.0
+    # the car was real and drove 4 m on: the ego now sees it at world x = 36..40 (its x = 33..37)
+    moved = on_ego_grid({"ego": _vehicle((33.0, 37.0, -1.0, 1.0))},
+                        {"ego": _evidence(free=(-5.0, 32.5, -5.0, 5.0), occupied=(33.0, 37.0, -1.0, 1.0))},
+                        {"ego": EGO}, SIZE, G)
+    assert later_view_check(claims["cav1"], moved, ego_pose, road, reach, SIZE).phantom_m2 == 0.0
+    # the ego's rays never reached there (unknown past 20 m): nothing to judge by
+    short = on_ego_grid({"ego": _vehicle()}, {"ego": _evidence(free=(-5.0, 20.0, -5.0, 5.0))}, {"ego": EGO}, SIZE, G)
+    assert later_view_check(claims["cav1"], short, ego_pose, road, reach, SIZE).phantom_m2 == 0.0
+
+
+def test_the_egos_later_view_finds_a_car_where_a_sender_vouched_the_road_empty_but_not_where_its_rays_did_not_reach(
+) -> None:
+    from v2vsim.perception.evidence_check import later_claims, later_view_check, on_ego_grid
+
+    road, reach = _road(), 15.0 * 0.4
+    # then: cav1 claims nothing; its rays cleared the road from 0 to 30 m ahead of it (ego x = 20..50)
+    liar = on_ego_grid({"ego": _vehicle(), "cav1": _vehicle()},
+                       {"ego": _evidence(), "cav1": _evidence(free=(0.0, 30.0, -5.0, 5.0))},
+                       {"ego": EGO, "cav1": CAV1}, SIZE, G)
+    blind = on_ego_grid({"ego": _vehicle(), "cav1": _vehicle()}, {"ego": _evidence(), "cav1": _evidence()},
+                        {"ego": EGO, "cav1": CAV1}, SIZE, G)
+    poses = {"ego": EGO, "cav1": CAV1}
+    # now (ego 3 m on) the ego's rays stop on a car at world x = 35..39 that it maps (its x = 32..36)
+    now = on_ego_grid({"ego": _vehicle((32.0, 36.0, -1.0, 1.0))},
+                      {"ego": _evidence(free=(-5.0, 31.5, -5.0, 5.0), occupied=(32.0, 36.0, -1.0, 1.0))},
+                      {"ego": EGO}, SIZE, G)
+    removed = later_view_check(later_claims(liar, poses, 0, (0.0, 0.0, 0.0), SIZE)["cav1"], now, (3.0, 0.0, 0.0),
+                               road, reach, SIZE)
+    assert removed.removed_m2 > 3.0 and removed.phantom_m2 == 0.0
+    unseen = later_view_check(later_claims(blind, poses, 0, (0.0, 0.0, 0.0), SIZE)["cav1"], now, (3.0, 0.0, 0.0),
+                              road, reach, SIZE)
+    assert unseen.removed_m2 == 0.0
