@@ -39,39 +39,70 @@ def liars_of(run: Path) -> set[str]:
     return {c for lie in doc.get("misbehaviour") or [] for c in lie.get("cavs", [])}
 
 
+def honest_rows(run: Path) -> list[list]:
+    """Every honest sender's per-frame rows of one run."""
+    liars = liars_of(run)
+    return [r for s, rows in rows_of(run).items() if s not in liars for r in rows]
+
+
+def flagged_by(row: list, limit: dict[str, float]) -> bool:
+    """The sender-frame is past a figure's threshold (the defence's rule: any figure flags)."""
+    return any((v := _value(row, k)) is not None and v > limit[k] for k in limit)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("folder", type=Path)
     ap.add_argument("--clean", type=Path, default=None)
+    ap.add_argument("--percentile", type=float, default=100.0,
+                    help="each threshold at this percentile of the clean sender-frames (100: their maximum)")
+    ap.add_argument("--margin", type=float, default=1.25, help="and this times it (room for seeds it never saw)")
     a = ap.parse_args(argv)
     clean_dir = a.clean or a.folder
     clean: dict[str, list[float]] = {k: [] for k in FIGURES}
     for run in sorted(clean_dir.glob("clean_*")):
         if (run / "metrics.json").is_file():
-            for rows in rows_of(run).values():
-                for r in rows:
-                    for k in FIGURES:
-                        if (v := _value(r, k)) is not None:
-                            clean[k].append(v)
+            for r in honest_rows(run):
+                for k in FIGURES:
+                    if (v := _value(r, k)) is not None:
+                        clean[k].append(v)
     if not clean["phantom_m2"]:
         print(f"no clean runs with evidence under {clean_dir}", file=sys.stderr)
         return 1
-    limit = {k: float(np.percentile(v, 98)) for k, v in clean.items() if v}
-    print(f"Honest senders, clean runs of {clean_dir} (sender-frames):\n")
-    print("| figure | sender-frames | median | 98th percentile | max |\n|---|---|---|---|---|")
+    limit = {k: round(a.margin * float(np.percentile(v, a.percentile)), 2) for k, v in clean.items() if v}
+    print(f"Honest senders, clean runs of {clean_dir} (sender-frames); threshold = {a.margin} x the "
+          f"{a.percentile:g}th percentile:\n")
+    print("| figure | sender-frames | median | 98th percentile | max | threshold |\n|---|---|---|---|---|---|")
     for k, v in clean.items():
         if v:
-            print(f"| {k} | {len(v)} | {np.median(v):.2f} | {limit[k]:.2f} | {max(v):.2f} |")
-    print(f"\nLies, {a.folder}: the liar's sender-frames past the 98th percentile above (frames to the first):\n")
-    print("| run | liar frames | " + " | ".join(FIGURES) + " |\n|---|---|" + "---|" * len(FIGURES))
+            print(f"| {k} | {len(v)} | {np.median(v):.2f} | {np.percentile(v, 98):.2f} | {max(v):.2f} | "
+                  f"{limit[k]:.2f} |")
+    names = {"phantom_m2": "phantom_threshold_m2", "removed_m2": "removed_threshold_m2",
+             "unclaimed_m2": "unclaimed_threshold_m2", "pose_gain": "pose_gain_threshold",
+             "later_m2": "later_threshold_m2"}
+    print("\nAs settings: " + " ".join(f"--set defence.{names[k]}={v}" for k, v in limit.items()))
+    print(f"\nHonest sender-frames flagged by any figure, {a.folder} (the false alarms; goal <= 2 %), and the "
+          "ego's check per frame (the `consistency` stage, ms):\n")
+    print("| run | honest sender-frames | flagged | share | check ms |\n|---|---|---|---|---|")
+    for run in sorted(a.folder.glob("*")):
+        if not (run / "metrics.json").is_file():
+            continue
+        rows = honest_rows(run)
+        n = sum(flagged_by(r, limit) for r in rows)
+        ms = json.loads((run / "metrics.json").read_text())["timing"]["ms_per_frame"].get("consistency")
+        print(f"| {run.name} | {len(rows)} | {n} | {100 * n / max(1, len(rows)):.1f} % | "
+              f"{'-' if ms is None else f'{ms:.0f}'} |")
+    print(f"\nLies, {a.folder}: the liar's sender-frames past each threshold (frames to the first), and by any:\n")
+    print("| run | liar frames | " + " | ".join(FIGURES) + " | any |\n|---|---|" + "---|" * (len(FIGURES) + 1))
     for run in sorted(a.folder.glob("lie_*")):
         if not (run / "metrics.json").is_file():
             continue
         rows = {s: r for s, r in rows_of(run).items() if s in liars_of(run)}
         n = sum(len(r) for r in rows.values())
         cells = []
-        for k in FIGURES:
-            past = [[(v := _value(r, k)) is not None and v > limit.get(k, np.inf) for r in rs] for rs in rows.values()]
+        for k in [*FIGURES, None]:
+            one = limit if k is None else {k: limit.get(k, np.inf)}  # None: any figure
+            past = [[flagged_by(r, one) for r in rs] for rs in rows.values()]
             hit = sum(sum(p) for p in past)
             first = min((p.index(True) for p in past if True in p), default=None)
             cells.append(f"{hit} ({'-' if first is None else first})")
