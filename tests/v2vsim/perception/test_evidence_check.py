@@ -5,6 +5,7 @@ with its lie where nobody else sees (not caught, by design)."""
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from v2vsim.perception.evidence import FREE, OCCUPIED, UNKNOWN
 from v2vsim.perception.evidence_check import check_evidence
@@ -106,10 +107,8 @@ def test_a_pose_told_two_metres_or_five_degrees_off_is_corrected_against_the_map
     assert pose_check(np.full_like(ev, UNKNOWN), EGO, buildings, SIZE) is None  # no hits: nothing to judge
 
 
-def _road() -> "torch.Tensor":
+def _road() -> torch.Tensor:
     """A straight road, 8 m wide along the ego's x axis, on the comparison grid."""
-    import torch
-
     r = np.zeros((G, G), bool)
     r[_rows_cols(G, -50.0, 50.0, -4.0, 4.0)] = True
     return torch.from_numpy(r)
