@@ -34,7 +34,11 @@ from v2vsim.study.summary import cell
 KEY = "misbehaviour"
 ATTACK, DEFENDED = "attack", "attack_defended"
 DEF = "+def"
-MEASURES = {"driving_score": "driving score", "collision": "collision rate", "iou_vehicle": "vehicle IoU"}
+MEASURES = {"driving_score": "driving score", "collision": "collision rate", "iou_vehicle": "vehicle IoU",
+            "close_call": "close-call rate", "safety_score": "safety-weighted score"}
+# the paired differences: the lie's cost, what the defence buys back, and where the defended drive ends against the
+# honest one (issue 67: a lie that raises the CARLA-style score while causing close calls must show in the safety one)
+DIFFS = ("att-clean", "def-att", "def-clean")
 Episodes = dict[Episode, dict[str, dict[str, float | None]]]
 
 
@@ -104,8 +108,8 @@ def _f(v: float | None) -> str:
     return "-" if v is None else f"{v:.3f}"
 
 
-def _rate(eps: Episodes, m: str) -> str:
-    vals = list(values_of(eps, m, "collision").values())
+def _rate(eps: Episodes, m: str, k: str = "collision") -> str:
+    vals = list(values_of(eps, m, k).values())
     return f"{int(sum(vals))}/{len(vals)}" if vals else "-"
 
 
@@ -133,6 +137,7 @@ def tables(eps: Episodes, levels: list[Any], flagged: dict[tuple[str, int], list
              "| IoU defended - attacked | liar frames flagged (def.) | honest frames flagged (def.) |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
     rows: list[list[Any]] = []
+    safety: list[str] = []
     for i, level in enumerate(levels):
         for m in methods:
             clean, att, dfd = f"{m}@0", f"{m}@{i}", f"{m}@{i}{DEF}"
@@ -140,8 +145,10 @@ def tables(eps: Episodes, levels: list[Any], flagged: dict[tuple[str, int], list
             iou = [mean_of(eps, x, "iou_vehicle") for x in (clean, att, dfd)]
             vs: dict[str, Interval | None] = {}
             for k in MEASURES:
-                vs[f"{k}|att-clean"] = compare(eps, att, clean, k, f"attack|{scope}|{i}", boot).diff if i else None
-                vs[f"{k}|def-att"] = compare(eps, dfd, att, k, f"attack|{scope}|{i}", boot).diff
+                tag = f"attack|{scope}|{i}"
+                vs[f"{k}|att-clean"] = compare(eps, att, clean, k, tag, boot).diff if i else None
+                vs[f"{k}|def-att"] = compare(eps, dfd, att, k, tag, boot).diff
+                vs[f"{k}|def-clean"] = compare(eps, dfd, clean, k, tag, boot).diff if i else None
             fl = flagged.get((m, i))
             lines.append(
                 f"| {lie_text(level)} | {m} | {' / '.join(_f(v) for v in ds)} | "
@@ -149,11 +156,22 @@ def tables(eps: Episodes, levels: list[Any], flagged: dict[tuple[str, int], list
                 f"{' / '.join(_rate(eps, x) for x in (clean, att, dfd))} | {' / '.join(_f(v) for v in iou)} | "
                 f"{cell(vs['iou_vehicle|att-clean'], True)} | {cell(vs['iou_vehicle|def-att'], True)} | "
                 f"{_share(fl, 0)} | {_share(fl, 2)} |")
+            safety.append(
+                f"| {lie_text(level)} | {m} | {cell(vs['driving_score|def-clean'], True)} | "
+                f"{' / '.join(_rate(eps, x, 'close_call') for x in (clean, att, dfd))} | "
+                f"{' / '.join(_f(mean_of(eps, x, 'safety_score')) for x in (clean, att, dfd))} | "
+                f"{cell(vs['safety_score|att-clean'], True)} | {cell(vs['safety_score|def-clean'], True)} |")
             for k in MEASURES:
-                for which in ("att-clean", "def-att"):
+                for which in DIFFS:
                     iv = vs[f"{k}|{which}"]
                     rows.append([scope, lie_text(level), m, k, which,
                                  *(["", "", ""] if iv is None else [round(iv.mean, 6), iv.lo, iv.hi])])
+    lines += ["", f"The drive against the honest one, {scope} (close call: no collision, yet SSM's minimum TTC under "
+              "1.5 s, a PET under 1 s or the footprints within 1 m; the safety-weighted score costs a close call "
+              "as v2vsim/control/score.py states):", "",
+              "| lie | method | driving score defended - clean | close calls clean / att. / def. "
+              "| safety-weighted score clean / att. / def. | safety attacked - clean | safety defended - clean |",
+              "|---|---|---|---|---|---|---|", *safety]
     lines.append("")
     return lines, rows
 

@@ -81,3 +81,29 @@ def test_a_directory_without_an_attack_sweep_is_refused(tmp_path: Path) -> None:
     r = subprocess.run([sys.executable, "scripts/attack_table.py", str(tmp_path)], cwd=REPO, capture_output=True,
                        text=True)
     assert r.returncode == 2 and "no " in r.stderr and "attack/sweep.json" in r.stderr
+
+
+def test_a_lie_that_scores_better_but_drives_closer_shows_as_worse_in_the_safety_weighted_score(tmp_path: Path) -> None:
+    """Issue 67's case: the honest drive waits (0.4) and the lie makes it cross at once (1.0) with close calls; the
+    CARLA-style difference is positive and the safety-weighted one, against the honest drive, negative."""
+    def row(s: int, v: int, score: float, calls: int, safety: float, lie: list) -> dict:
+        r = _row("cobevt", s, v, score, 0.5, 0, lie)
+        r.update(driving_close_calls=calls, driving_safety_score=safety)
+        return r
+
+    fam = tmp_path / "families" / "blind_pullout"
+    eps = [(s, v) for s in (0, 1) for v in (8, 11)]
+    _sweep(fam / "reference", [_row(m, s, v, 1.0, 0.5, 0) for m in ("oracle", "none") for s, v in eps], False)
+    _sweep(fam / "attack", [row(s, v, 0.4, 0, 0.4, LIES[0]) for s, v in eps]
+           + [row(s, v, 1.0, 1, 0.775, LIES[1]) for s, v in eps], True)
+    _sweep(fam / "attack_defended", [row(s, v, 0.4, 0, 0.4, LIES[0]) for s, v in eps]
+           + [row(s, v, 0.3, 0, 0.3, LIES[1]) for s, v in eps], True)
+    out = subprocess.run([sys.executable, "scripts/attack_table.py", str(tmp_path), "--boot", "200"], cwd=REPO,
+                         capture_output=True, text=True, check=True).stdout
+    main = next(ln for ln in out.splitlines() if ln.startswith("| cav1 remove_vehicle | cobevt | 0.400"))
+    assert [c.strip() for c in main.split("|")[1:-1]][3].startswith("+0.600")  # the CARLA-style score rose
+    safe = next(ln for ln in out.splitlines() if ln.startswith("| cav1 remove_vehicle | cobevt | -0.100"))
+    cells = [c.strip() for c in safe.split("|")[1:-1]]
+    assert cells[3] == "0/4 / 4/4 / 0/4"  # close calls clean / attacked / defended
+    assert cells[4] == "0.400 / 0.775 / 0.300"
+    assert cells[5].startswith("+0.375") and cells[6].startswith("-0.100")
