@@ -50,7 +50,8 @@ def lie_text(level: list[dict[str, Any]]) -> str:
     for lie in level:
         kind = lie["kind"]
         extra = (f" x{lie['factor']:g}" if "factor" in lie else "") + (
-            f" {lie['shift_m'][0]:g} m / {lie.get('rotate_deg', 0):g} deg" if "shift_m" in lie else "")
+            f" {lie['shift_m'][0]:g} m / {lie.get('rotate_deg', 0):g} deg" if "shift_m" in lie else "") + (
+            ", evidence consistent" if lie.get("evidence") == "consistent" else "")
         parts.append(f"{'+'.join(lie['cavs'])} {kind}{extra}")
     return "; ".join(parts)
 
