@@ -28,7 +28,7 @@ run lie_add_consistent $TJ --set 'misbehaviour=[{cavs: [cav1], kind: add_vehicle
 run lie_collude_remove $TJ --set 'misbehaviour=[{cavs: [cav1, cav2], kind: remove_vehicle, evidence: consistent}]'
 run lie_scale2 $TJ --set 'misbehaviour=[{cavs: [cav1], kind: scale, factor: 2}]'
 for scen in t_junction_occluded red_light_runner left_turn_truck blind_corner_stop ramp_merge crossroads_occluded \
-            t_junction intersection intersection_mixed; do
+            t_junction intersection intersection_mixed intersection_camera; do
   run "clean_$scen" "$scen"
 done
 python scripts/evidence_table.py "$OUT"

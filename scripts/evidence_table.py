@@ -45,6 +45,31 @@ def honest_rows(run: Path) -> list[list]:
     return [r for s, rows in rows_of(run).items() if s not in liars for r in rows]
 
 
+def consistency_flags(run: Path) -> dict[str, dict[int, bool]]:
+    """Per sender and frame, the consistency check's own verdict (metrics.json defence.senders per_frame: [frame,
+    road, vehicle_m2, shared_m2, flagged, ...]): camera senders send no evidence, and this is all that judges them."""
+    doc = json.loads((run / "metrics.json").read_text())
+    senders = (doc.get("defence") or {}).get("senders") or {}
+    return {s: {int(r[0]): bool(r[4]) for r in x.get("per_frame", [])} for s, x in senders.items()}
+
+
+def honest_alarms(run: Path, limit: dict[str, float]) -> tuple[int, int]:
+    """The honest sender-frames a run judged (by the consistency check or by evidence) and those flagged by either:
+    the defence's rule, one figure past its threshold or the consistency check's flag."""
+    liars, ev = liars_of(run), rows_of(run)
+    judged = flagged = 0
+    cons = consistency_flags(run)
+    for s in sorted(set(cons) | set(ev)):
+        if s in liars:
+            continue
+        frames = cons.get(s, {})
+        by_ev = {int(r[0]): flagged_by(r, limit) for r in ev.get(s, [])}
+        both = set(by_ev) | set(frames)
+        judged += len(both)
+        flagged += sum(by_ev.get(f, False) or frames.get(f, False) for f in both)
+    return judged, flagged
+
+
 def flagged_by(row: list, limit: dict[str, float]) -> bool:
     """The sender-frame is past a figure's threshold (the defence's rule: any figure flags)."""
     return any((v := _value(row, k)) is not None and v > limit[k] for k in limit)
@@ -81,16 +106,15 @@ def main(argv: list[str] | None = None) -> int:
              "unclaimed_m2": "unclaimed_threshold_m2", "pose_gain": "pose_gain_threshold",
              "later_m2": "later_threshold_m2"}
     print("\nAs settings: " + " ".join(f"--set defence.{names[k]}={v}" for k, v in limit.items()))
-    print(f"\nHonest sender-frames flagged by any figure, {a.folder} (the false alarms; goal <= 2 %), and the "
-          "ego's check per frame (the `consistency` stage, ms):\n")
-    print("| run | honest sender-frames | flagged | share | check ms |\n|---|---|---|---|---|")
+    print(f"\nHonest sender-frames flagged, {a.folder} (the false alarms: by any evidence figure or by the consistency "
+          "check; goal <= 2 %), and the ego's check per frame (the `consistency` stage, ms):\n")
+    print("| run | honest sender-frames judged | flagged | share | check ms |\n|---|---|---|---|---|")
     for run in sorted(a.folder.glob("*")):
         if not (run / "metrics.json").is_file():
             continue
-        rows = honest_rows(run)
-        n = sum(flagged_by(r, limit) for r in rows)
+        judged, n = honest_alarms(run, limit)
         ms = json.loads((run / "metrics.json").read_text())["timing"]["ms_per_frame"].get("consistency")
-        print(f"| {run.name} | {len(rows)} | {n} | {100 * n / max(1, len(rows)):.1f} % | "
+        print(f"| {run.name} | {judged} | {n} | {100 * n / max(1, judged):.1f} % | "
               f"{'-' if ms is None else f'{ms:.0f}'} |")
     print(f"\nLies, {a.folder}: the liar's sender-frames past each threshold (frames to the first), and by any:\n")
     print("| run | liar frames | " + " | ".join(FIGURES) + " | any |\n|---|---|" + "---|" * (len(FIGURES) + 1))
