@@ -108,7 +108,10 @@ def test_evidence_flags_a_phantom_only_where_a_threshold_is_set() -> None:
     assert flagged == {"cav2"} and "cav2" not in out.outputs
     row = judged.to_json()["evidence"]["cav2"]["per_frame"][0]
     assert row[1] > 4 and row[9] is True
-    recorded = SenderCheck(load_scenario("scenarios/t_junction.yaml", base), model=None)  # type: ignore[arg-type]
+    unset = [f"defence.{k}=null" for k in ("phantom_threshold_m2", "removed_threshold_m2", "unclaimed_threshold_m2",
+                                           "pose_gain_threshold", "later_threshold_m2")]
+    recorded = SenderCheck(load_scenario("scenarios/t_junction.yaml", [*base, *unset]),
+                           model=None)  # type: ignore[arg-type]
     out, flagged = recorded.check(0, _phantom_inp(), road_map=_road())
     assert not flagged and "cav2" in out.outputs  # no threshold: recorded, not judged
     assert recorded.to_json()["evidence"]["cav2"]["max_phantom_m2"] > 4
