@@ -210,15 +210,22 @@ def fuse(ego: Ego, run: EgoRun, k: int, world: WorldState) -> tuple[FusedFrame, 
                         replay.once(("ground_truth", me, frozenset(visible)),
                                     partial(ground_truth, world, me, sc, visible, ego.assets)))
     flagged: set[str] = set()
+    # with the defence, `none` (the ego's own features decoded) runs first and the check reuses its map for the ego:
+    # the ego is never excluded, so what `none` fuses does not depend on the check, and it is decoded once
+    first = {"none": nets.models["none"]} if nets.sender_check is not None and "none" in nets.models else {}
+    own = predict_all(first, inp, sc.bev.cells, nets.precision, ego.memo) if first else {}
     if nets.sender_check is not None:  # the map's drivable area is map knowledge, not the frame's ground truth
         with timer.stage("consistency"):
             pose = world.actor(me).pose  # type: ignore[union-attr]
             buildings = None
             if sc.defence.evidence:  # the map's buildings, for the senders' walls (v2vsim/perception/evidence_check)
                 buildings = map_layer(ego.assets.ground, pose, sc.bev.size_m, MAX_CELLS, GROUND_BUILDING)
-            inp, flagged = nets.sender_check.check(k, inp, gt["road"], buildings, (pose.x, pose.y, pose.yaw))
-    preds = predict_all(nets.models, inp, sc.bev.cells, nets.precision, ego.memo, ego.pool,
+            inp, flagged = nets.sender_check.check(k, inp, gt["road"], buildings, (pose.x, pose.y, pose.yaw),
+                                                   own.get("none"))
+    rest = {m: model for m, model in nets.models.items() if m not in own}
+    later = predict_all(rest, inp, sc.bev.cells, nets.precision, ego.memo, ego.pool,
                         cost=None if ego.pool is None else timer.method_ms())
+    preds = {m: p for m in nets.models if (p := own.get(m) or later.get(m)) is not None}  # the models' order
     for m, pred in preds.items():
         timer.add(f"fusion.{m}", pred.ms - pred.decode_ms)
         timer.add(f"decoding.{m}", pred.decode_ms)

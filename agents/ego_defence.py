@@ -26,7 +26,7 @@ from v2vsim.perception.evidence_check import (
     road_on_grid,
     wall_outlines,
 )
-from v2vsim.perception.fuse import FusionInputs
+from v2vsim.perception.fuse import FusionInputs, Prediction
 from v2vsim.perception.precision import Precision
 from v2vsim.perception.reputation import Standing, update
 
@@ -62,17 +62,18 @@ class SenderCheck:
         self.cfg = dataclasses.replace(self.sc.defence, road_threshold=self.sc.defence.road_limit(cameras))
 
     def check(self, k: int, inp: FusionInputs, road_map: np.ndarray | None = None,
-              buildings: np.ndarray | None = None,
-              ego_pose: tuple[float, float, float] | None = None) -> tuple[FusionInputs, set[str]]:
+              buildings: np.ndarray | None = None, ego_pose: tuple[float, float, float] | None = None,
+              own: Prediction | None = None) -> tuple[FusionInputs, set[str]]:
         """Frame k: score and flag the senders; the inputs every method fuses (without the flagged ones when the
         defence excludes) and the flagged senders. `road_map`: the drivable area of the ego's map on its grid;
         `buildings` (defence.evidence): its buildings' footprints on a MAX_CELLS grid; `ego_pose`: its world
-        (x, y, yaw), for the later view (None: no later view)."""
+        (x, y, yaw), for the later view (None: no later view); `own`: the `none` method's prediction of this frame
+        (the ego's own features decoded by the same model), reused for the ego instead of decoding them again."""
         cfg = self.cfg
         ego = inp.senders[0]
         scores: dict[str, list[Disagreement]] = {}
         hits: set[str] = set()
-        all_maps = self._maps(inp)
+        all_maps = self._maps(inp, own)
         ev_judged: set[str] = set()
         if cfg.evidence and inp.evidence:
             ev_judged, ev_flagged = self._record_evidence(k, inp, all_maps, road_map, buildings, ego_pose)
@@ -184,13 +185,25 @@ class SenderCheck:
         return {s: later_view_check(c, grid, ego_pose, road, reach, size_m)
                 for s, c in self.later.get(k - d, {}).items()}
 
-    def _maps(self, inp: FusionInputs) -> dict[str, dict[str, np.ndarray]]:
-        """Per message kind, each sender's single-agent maps [3, S, S]: its features decoded alone; late fusion's
-        outputs as sent (a lie may touch one kind and not the other)."""
-        out = {"features": decode_alone(self.model, inp.features, self.precision)} if inp.features else {}
+    def _maps(self, inp: FusionInputs, own: Prediction | None = None) -> dict[str, dict[str, np.ndarray]]:
+        """Per message kind, each sender's single-agent maps [3, S, S]: its features decoded alone (the ego's taken
+        from `own` where its grid is the decoder's); late fusion's outputs as sent (a lie may touch one kind and
+        not the other)."""
+        out = {"features": self._decoded(inp.features, inp.senders[0], own)} if inp.features else {}
         if inp.outputs:
             out["outputs"] = {s: v[0] for s, v in inp.outputs.items()}
         return out
+
+    def _decoded(self, features: dict[str, np.ndarray], ego: str, own: Prediction | None) -> dict[str, np.ndarray]:
+        """decode_alone of every sender, the ego's map taken from `own` (the `none` prediction) when it is on the
+        decoder's own grid (a scenario grid that differs is resized: then the ego is decoded with the rest)."""
+        if own is None or ego not in features:
+            return decode_alone(self.model, features, self.precision)
+        mine = np.stack([own.probs[c] for c in ("vehicle", "road", "lane")]).astype(np.float32)  # [3, S, S]
+        others = decode_alone(self.model, {s: f for s, f in features.items() if s != ego}, self.precision)
+        if others and next(iter(others.values())).shape != mine.shape:
+            return decode_alone(self.model, features, self.precision)
+        return {s: mine if s == ego else others[s] for s in features}
 
     def flagged_counts(self) -> dict[str, tuple[int, int]]:
         """Sender -> (frames flagged, frames compared), for the senders flagged in at least defence.min_frames."""

@@ -115,3 +115,33 @@ def test_evidence_flags_a_phantom_only_where_a_threshold_is_set() -> None:
     out, flagged = recorded.check(0, _phantom_inp(), road_map=_road())
     assert not flagged and "cav2" in out.outputs  # no threshold: recorded, not judged
     assert recorded.to_json()["evidence"]["cav2"]["max_phantom_m2"] > 4
+
+
+def test_the_check_reuses_nones_map_of_the_ego_and_it_is_what_decoding_again_gives() -> None:
+    """The ego's own map comes from the `none` prediction (decoded once, agents/ego.py) and equals decode_alone's."""
+    from v2vsim.perception.build import build_agent_encoder, build_method_models
+    from v2vsim.perception.consistency import decode_alone
+    from v2vsim.perception.fuse import predict
+    from v2vsim.perception.plan import plan_models
+
+    sc = load_scenario("scenarios/t_junction_occluded.yaml", ["defence.detect=true"])
+    plan = plan_models(sc)
+    model = build_method_models(plan, build_agent_encoder(plan), ("none",))["none"].eval()
+    rng = np.random.default_rng(0)
+    feats = {s: rng.standard_normal((64, 64, 64)).astype(np.float32) for s in ("cav0", "cav1", "cav2")}
+    inp = FusionInputs(senders=list(feats), rel_poses=np.zeros((3, 3), np.float32), features=feats)
+    own = predict("none", model, inp, sc.bev.cells)
+    check = SenderCheck(sc, model)
+    calls: list[list[str]] = []
+    real = check.model.heads.forward
+
+    def counted(x):  # type: ignore[no-untyped-def]
+        calls.append([x.shape[0]])
+        return real(x)
+
+    check.model.heads.forward = counted  # type: ignore[method-assign]
+    reused = check._decoded(feats, "cav0", own)
+    assert calls == [[2]]  # the two senders only: the ego's map was not decoded again
+    again = decode_alone(model, feats)
+    for s in feats:
+        assert np.allclose(reused[s], again[s], atol=1e-5)
