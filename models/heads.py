@@ -272,6 +272,11 @@ class BevHeads(nn.Module):
             out["det_cls"], out["det_reg"] = self.detection(s2)
         return out
 
+    def segmentation(self, fused: Tensor) -> dict[str, Tensor]:
+        """forward's "dynamic" and "static" alone, without the detection head (for a reader of the maps only)."""
+        s3 = self.decoder(fused)[-1]
+        return {"dynamic": self.dynamic(s3), "static": self.static(s3)}
+
 
     def for_inference(self) -> BevHeads:
         """The same function, cheaper on a CPU (outputs equal to ~1e-6): each decoder BatchNorm folded

@@ -233,9 +233,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=verbs.cmd_view)
 
     p = sub.add_parser("bench", help="benchmarks: sensors | models | comm | run | startup | fleet | env | placement "
-                       "| flood")
+                       "| flood | defence")
     p.add_argument("what", choices=["sensors", "models", "comm", "run", "startup", "fleet", "env", "placement",
-                                    "flood"])
+                                    "flood", "defence"])
     p.add_argument("rest", nargs=argparse.REMAINDER, help="options passed to the benchmark (see its --help)")
     p.set_defaults(func=verbs.cmd_bench)
     return parser

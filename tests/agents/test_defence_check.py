@@ -133,13 +133,13 @@ def test_the_check_reuses_nones_map_of_the_ego_and_it_is_what_decoding_again_giv
     own = predict("none", model, inp, sc.bev.cells)
     check = SenderCheck(sc, model)
     calls: list[list[str]] = []
-    real = check.model.heads.forward
+    real = check.model.heads.segmentation
 
     def counted(x):  # type: ignore[no-untyped-def]
         calls.append([x.shape[0]])
         return real(x)
 
-    check.model.heads.forward = counted  # type: ignore[method-assign]
+    check.model.heads.segmentation = counted  # type: ignore[method-assign]
     reused = check._decoded(feats, "cav0", own)
     assert calls == [[2]]  # the two senders only: the ego's map was not decoded again
     again = decode_alone(model, feats)

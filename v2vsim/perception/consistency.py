@@ -81,7 +81,7 @@ def decode_alone(model: nn.Module, features: dict[str, np.ndarray], precision: P
     names = list(features)
     device = model_device(model)
     feats = torch.from_numpy(np.stack([features[s] for s in names])).to(device)  # [L, C, F, F]
-    out = heads_float(model, feats, precision)
+    out = heads_float(model, feats, precision, boxes=False)  # the maps are all the check reads
     probs = segmentation_probabilities(out["dynamic"], out["static"])  # each [L, S, S]
     maps = np.stack([to_host(probs[k]) for k in ("vehicle", "road", "lane")], axis=1)  # [L, 3, S, S]
     return {s: maps[i].astype(np.float32) for i, s in enumerate(names)}

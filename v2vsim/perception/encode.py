@@ -55,11 +55,11 @@ def encode_points(encoder: nn.Module, points: np.ndarray, precision: Precision =
         return to_host(encoder([cloud])[0].float())
 
 
-def heads_float(model: nn.Module, fused: Tensor, precision: Precision) -> dict[str, Tensor]:
+def heads_float(model: nn.Module, fused: Tensor, precision: Precision, boxes: bool = True) -> dict[str, Tensor]:
     """The heads on a fused map [B, C, F, F] (on the model's device), every output back in float32 and left on
-    that device."""
+    that device; `boxes=False`: the segmentation heads only (no detection head run)."""
     with autocast(precision, fused.device.type):
-        out = model.heads(fused)
+        out = model.heads(fused) if boxes else model.heads.segmentation(fused)
     return {k: v.float() for k, v in out.items()}
 
 

@@ -258,8 +258,11 @@ def later_view_check(then: LaterClaim, now: EgoGridEvidence, ego_pose: tuple[flo
     on_road = torch.ones_like(claimed) if road is None else road
     n = int(np.ceil(reach_m / (size_m / cells)))
 
-    def within_reach(mask: torch.Tensor) -> torch.Tensor:  # cells with a `mask` cell within n cells
-        return F.max_pool2d(mask.float()[None, None], 2 * n + 1, stride=1, padding=n)[0, 0] > 0.5
+    def within_reach(mask: torch.Tensor) -> torch.Tensor:  # cells with a `mask` cell within n cells (a square)
+        # a square's max is the max over its rows of the max over its columns: two 1-D pools of 2n+1, not one of
+        # (2n+1)^2 (the later view's largest cost per frame)
+        m = F.max_pool2d(mask.float()[None, None], (2 * n + 1, 1), stride=1, padding=(n, 0))
+        return F.max_pool2d(m, (1, 2 * n + 1), stride=1, padding=(0, n))[0, 0] > 0.5
 
     ego_clear = now.clear[0] & ~now.occupied[0] & ~_near(cells, size_m, (0.0, 0.0), FOOTPRINT_M)
     phantom = claimed & ~within_reach(on_road & ~ego_clear)
