@@ -64,10 +64,19 @@ def lidar_sweep(world: WorldState, cav_id: str, cfg: LidarConfig, rng: np.random
         scene = build_scene(world)
     me = actor_index(world, cav_id)
     pose = world.actors[me].pose
+    return sweep_from(scene, cav_id, (pose.x, pose.y, pose.yaw), cfg, rng, exclude_actor=me)
+
+
+def sweep_from(scene: Scene, sensor_id: str, pose: tuple[float, float, float], cfg: LidarConfig,
+               rng: np.random.Generator, exclude_actor: int | None = None) -> LidarSweep:
+    """A sweep from any mount: `pose` (world x, y, heading) on the ground, the LiDAR `cfg.height_m` above it (a
+    CAV's roof, or a pole: a roadside unit's sensor sees over what a car's cannot, and not through a building);
+    `exclude_actor`: the scene's prism of the sensor's own body, if it has one."""
+    x, y, yaw = pose
     az, el = lidar_beams(cfg)
-    hits = cast_columns(scene.prisms, (pose.x, pose.y), cfg.height_m, az + pose.yaw, np.tan(el),
-                        max_range=cfg.range_m, exclude_actor=me)
-    return _to_sweep(cav_id, hits, az, el, pose.x, pose.y, pose.yaw, scene, cfg, rng)
+    hits = cast_columns(scene.prisms, (x, y), cfg.height_m, az + yaw, np.tan(el), max_range=cfg.range_m,
+                        exclude_actor=exclude_actor)
+    return _to_sweep(sensor_id, hits, az, el, x, y, yaw, scene, cfg, rng)
 
 
 def _to_sweep(cav_id: str, hits: RayHits, az: np.ndarray, el: np.ndarray, x: float, y: float, yaw: float,

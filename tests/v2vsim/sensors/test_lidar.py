@@ -82,3 +82,25 @@ def test_noise_dropout_and_intensity() -> None:
     # Retro-reflective paint returns far more than asphalt at similar incidence.
     assert np.median(inten[marking]) > 3 * np.median(inten[road])
     assert np.median(inten[clean.hit_actor == 1]) > np.median(inten[road])
+
+
+def test_a_pole_sees_over_a_van_that_hides_a_car_from_a_roof_but_not_through_a_building() -> None:
+    """Issue 68's roadside unit: from 1.9 m a 2.6 m van 8 m ahead hides a car 16 m ahead (every ray that could reach
+    the car passes the van below its roof); from a 5 m pole at the same spot the car is hit; a 10 m wall in between
+    still hides it from the pole."""
+    from v2vsim.sensors.lidar import sweep_from
+
+    cfg = dataclasses.replace(CFG, channels=32, vertical_fov_deg=(-25.0, 5.0))
+    van = car("van", 8.0, 0.0, extent=(5.0, 2.0, 2.6))
+    target = car("car", 16.0, 0.0)
+
+    def hits(height: float, wall: bool) -> int:
+        b = (Building("wall", rect(11.0, -8.0, 12.0, 8.0), 10.0),) if wall else ()
+        scene = build_scene(world([van, target], static_map(b)))
+        sw = sweep_from(scene, "rsu0", (0.0, 0.0, 0.0), dataclasses.replace(cfg, height_m=height),
+                        np.random.default_rng(0))
+        return int(sw.hits_per_actor(2)[1])
+
+    assert hits(1.9, wall=False) == 0
+    assert hits(5.0, wall=False) > 20
+    assert hits(5.0, wall=True) == 0
