@@ -42,10 +42,13 @@ class SenderCheck:
     frames: dict[str, list[tuple]] = field(default_factory=dict)
     # defence.evidence: sender -> per frame with evidence (frame, phantom_m2, removed_m2, unclaimed_m2, witnessed_m2,
     # pose_shift_m, pose_turn_deg, on_map, on_map_corrected, flagged, later_frame, later_phantom_m2,
-    # later_removed_m2): its claims against the agents' rays, its pose against the map and its claims of
-    # later_frame against the ego's own rays now (v2vsim/perception/evidence_check.py; the last three null where
-    # no claim of defence.later_frames ago is kept), judged by the thresholds that are set
+    # later_removed_m2, pose_cusum): its claims against the agents' rays, its pose against the map, its claims of
+    # later_frame against the ego's own rays now (v2vsim/perception/evidence_check.py; the three later figures null
+    # where no claim of defence.later_frames ago is kept) and its pose gain's CUSUM so far, judged by the
+    # thresholds that are set
     evidence: dict[str, list[tuple]] = field(default_factory=dict)
+    # defence.pose_cusum_*: sender -> the CUSUM of its pose gain so far
+    pose_cusum: dict[str, float] = field(default_factory=dict)
     # defence.later_frames: frame -> sender -> its claims then, kept until the ego's rays judge them
     later: dict[int, dict[str, LaterClaim]] = field(default_factory=dict)
     # defence.remember: each sender's standing, and per frame it was present (frame, reputation, trusted)
@@ -158,6 +161,12 @@ class SenderCheck:
             past = [row[i] > lim for i, lim in limits.items() if lim is not None]
             if pv is not None and cfg.pose_gain_threshold is not None:
                 past.append(pv.on_map_corrected - pv.on_map > cfg.pose_gain_threshold)
+            # a frame without walls to judge by adds nothing and lets the sum fall by the drift
+            gain = 0.0 if pv is None else pv.on_map_corrected - pv.on_map
+            cusum = round(max(0.0, self.pose_cusum.get(s, 0.0) + gain - cfg.pose_cusum_drift), 4)
+            self.pose_cusum[s] = cusum
+            if pv is not None and cfg.pose_cusum_threshold is not None:
+                past.append(cusum > cfg.pose_cusum_threshold)
             if lv is not None and cfg.later_threshold_m2 is not None:
                 past.append(max(lv.phantom_m2, lv.removed_m2) > cfg.later_threshold_m2)
             if past:
@@ -165,7 +174,8 @@ class SenderCheck:
             if any(past):
                 flagged.add(s)
             self.evidence.setdefault(s, []).append(
-                (*row, any(past), *((None,) * 3 if lv is None else (lv.frame, lv.phantom_m2, lv.removed_m2))))
+                (*row, any(past), *((None,) * 3 if lv is None else (lv.frame, lv.phantom_m2, lv.removed_m2)),
+                 cusum))
         return judged, flagged
 
     def _later_view(self, k: int, grid: EgoGridEvidence, poses: dict[str, np.ndarray], road: torch.Tensor | None,

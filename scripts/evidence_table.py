@@ -17,7 +17,9 @@ from pathlib import Path
 import numpy as np
 
 # per-frame row of metrics.json defence.evidence (agents/ego_defence.py): figure -> its column, and how it is read
-FIGURES = {"phantom_m2": 1, "removed_m2": 2, "unclaimed_m2": 3, "pose_gain": None, "later_m2": None}
+FIGURES = {"phantom_m2": 1, "removed_m2": 2, "unclaimed_m2": 3, "pose_gain": None, "later_m2": None,
+           "pose_cusum": 13}
+POSE_CUSUM_DRIFT = 0.16  # DefenceConfig.pose_cusum_drift: rows of runs from before the CUSUM get it recomputed
 
 
 def _value(row: list, name: str) -> float | None:
@@ -29,9 +31,21 @@ def _value(row: list, name: str) -> float | None:
 
 
 def rows_of(run: Path) -> dict[str, list[list]]:
+    """Per sender its evidence rows, each with its pose gain's CUSUM at index 13 (recomputed with the default drift
+    for a run recorded before the defence kept it)."""
     doc = json.loads((run / "metrics.json").read_text())
     ev = (doc.get("defence") or {}).get("evidence") or {}
-    return {s: x["per_frame"] for s, x in ev.items()}
+    out = {}
+    for s, x in ev.items():
+        rows, total = [], 0.0
+        for r in x["per_frame"]:
+            if len(r) < 14:
+                gain = 0.0 if r[7] is None else float(r[8]) - float(r[7])
+                total = max(0.0, total + gain - POSE_CUSUM_DRIFT)
+                r = [*r, *([None] * (13 - len(r))), round(total, 4)]
+            rows.append(r)
+        out[s] = rows
+    return out
 
 
 def liars_of(run: Path) -> set[str]:
@@ -104,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
                   f"{limit[k]:.2f} |")
     names = {"phantom_m2": "phantom_threshold_m2", "removed_m2": "removed_threshold_m2",
              "unclaimed_m2": "unclaimed_threshold_m2", "pose_gain": "pose_gain_threshold",
-             "later_m2": "later_threshold_m2"}
+             "later_m2": "later_threshold_m2", "pose_cusum": "pose_cusum_threshold"}
     print("\nAs settings: " + " ".join(f"--set defence.{names[k]}={v}" for k, v in limit.items()))
     print(f"\nHonest sender-frames flagged, {a.folder} (the false alarms: by any evidence figure or by the consistency "
           "check; goal <= 2 %), and the ego's check per frame (the `consistency` stage, ms):\n")

@@ -145,3 +145,28 @@ def test_the_check_reuses_nones_map_of_the_ego_and_it_is_what_decoding_again_giv
     again = decode_alone(model, feats)
     for s in feats:
         assert np.allclose(reused[s], again[s], atol=1e-5)
+
+
+def test_a_small_pose_lie_adds_up_over_frames_and_an_honest_senders_small_gains_do_not(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """defence.pose_cusum_*: cav2's pose gain 0.2 a frame (under pose_gain_threshold 0.32) sums past the threshold
+    0.11 at its third frame (0.04, 0.08, 0.12 with drift 0.16); cav1's 0.1 a frame (under the drift) never adds up.
+    pose_check stubbed: this is the sum's test, not the wall matching's (tests/v2vsim/perception)."""
+    import agents.ego_defence as ed
+    from v2vsim.perception.evidence import UNKNOWN
+    from v2vsim.perception.evidence_check import PoseVerdict
+
+    gains = {1: 0.1, 2: 0.2, 3: 0.0}
+    calls = iter([1, 2, 3] * 10)
+    monkeypatch.setattr(ed, "pose_check", lambda *a, **k: PoseVerdict(0.8, -2.0, 0.5, 0.5 + gains[next(calls)], 100))
+    sc = load_scenario("scenarios/t_junction.yaml", ["bev.size_m=100", "defence.evidence=true"])
+    check = SenderCheck(sc, model=None)  # type: ignore[arg-type]
+    flagged_at = []
+    for k in range(5):
+        inp = _honest_inp()
+        inp.evidence = {s: np.full((128, 128), UNKNOWN, np.uint8) for s in inp.senders}
+        _, flagged = check.check(k, inp, road_map=_road(), buildings=np.zeros((128, 128), bool))
+        flagged_at.append(sorted(flagged))
+    assert flagged_at == [[], [], ["cav2"], ["cav2"], ["cav2"]]
+    rows = check.to_json()["evidence"]
+    assert [r[13] for r in rows["cav2"]["per_frame"]] == [0.04, 0.08, 0.12, 0.16, 0.2]
+    assert all(r[13] == 0.0 for r in rows["cav1"]["per_frame"])

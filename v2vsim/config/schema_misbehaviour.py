@@ -59,6 +59,15 @@ class DefenceConfig:
     pose_gain_threshold: float | None = _f(0.32, "null or 0..1 (the share of its wall hits a pose correction puts "
                                                  "on the map's buildings beyond the claimed pose's)",
                                            lambda v: 0 <= v <= 1)
+    # the pose over frames: per sender a one-sided CUSUM of its pose gain, S = max(0, S + gain - drift) (Page 1954),
+    # flagged while S passes the threshold; a persistent small pose lie adds up where one frame's gain stays under
+    # pose_gain_threshold. Calibrated on tuning seed 100 (scripts/evidence_study.sh): the drift half the median gain
+    # of its 1 m / 2 deg lie (0.321), the threshold 1.25 x the largest S of any honest sender in its clean runs
+    pose_cusum_drift: float = _f(0.16, "> 0 (pose gain a frame that an honest sender may have without adding up)",
+                                 _pos)
+    pose_cusum_threshold: float | None = _f(0.11, "null or > 0 (the CUSUM of its pose gain past which it is "
+                                                   "flagged; null: recorded, not judged by)",
+                                            lambda v: v > 0)
     # the ego's own later view (evidence_check.later_view_check): a sender's claims are checked against the ego's
     # own rays this many frames later (0: never), allowing for a vehicle's move at up to later_speed_mps since
     later_frames: int = _f(3, ">= 0 (frames)", lambda v: v >= 0)
