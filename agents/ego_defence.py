@@ -16,6 +16,7 @@ from v2vsim.config.schema_misbehaviour import DefenceConfig
 from v2vsim.perception.consistency import MAX_CELLS, VEHICLE, Disagreement, check_frame, decode_alone, without
 from v2vsim.perception.evidence_check import (
     EgoGridEvidence,
+    EvidenceVerdict,
     LaterClaim,
     LaterVerdict,
     judge_claims,
@@ -148,7 +149,7 @@ class SenderCheck:
         if grid is None:
             return judged, flagged
         road = None if road_map is None else road_on_grid(road_map, MAX_CELLS)
-        verdicts = judge_claims(grid, size_m, road)
+        verdicts = self._claims_without_liars(grid, road, ego)
         later = self._later_view(k, grid, poses, road, ego_pose) if grid.names[0] == ego else {}  # the ego's rays
         outlines = None if buildings is None else wall_outlines(buildings)  # once a frame, for every sender
         for s, v in verdicts.items():
@@ -177,6 +178,31 @@ class SenderCheck:
                 (*row, any(past), *((None,) * 3 if lv is None else (lv.frame, lv.phantom_m2, lv.removed_m2)),
                  cusum))
         return judged, flagged
+
+    def _claims_without_liars(self, grid: EgoGridEvidence, road: torch.Tensor | None,
+                              ego: str) -> dict[str, EvidenceVerdict]:
+        """judge_claims, then as check_frame does for the consistency check: while a sender not yet left out passes
+        the phantom or removed threshold, the one furthest past it is left out of every witness and the others are
+        judged again (a liar's garbled map and its rays would otherwise make honest senders look like removers;
+        the closed-loop attack study, docs/results.md). Each sender keeps its verdict from the last round it was
+        judged in."""
+        cfg, size_m = self.cfg, self.sc.bev.size_m
+        limits = {"phantom_m2": cfg.phantom_threshold_m2, "removed_m2": cfg.removed_threshold_m2}
+        verdicts = judge_claims(grid, size_m, road)
+        out: dict[str, EvidenceVerdict] = dict(verdicts)
+        left_out: set[str] = set()
+
+        def excess(v: EvidenceVerdict) -> float:  # > 1: past a threshold
+            return max([getattr(v, k) / lim for k, lim in limits.items() if lim], default=0.0)
+
+        while True:
+            suspects = {s: excess(v) for s, v in verdicts.items() if s != ego and s not in left_out}
+            suspects = {s: x for s, x in suspects.items() if x > 1.0}
+            if not suspects:
+                return out
+            left_out.add(max(suspects, key=lambda s: suspects[s]))
+            verdicts = judge_claims(grid, size_m, road, frozenset(left_out))
+            out.update({s: v for s, v in verdicts.items() if s not in left_out})
 
     def _later_view(self, k: int, grid: EgoGridEvidence, poses: dict[str, np.ndarray], road: torch.Tensor | None,
                     ego_pose: tuple[float, float, float] | None) -> dict[str, LaterVerdict]:

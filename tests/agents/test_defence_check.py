@@ -170,3 +170,30 @@ def test_a_small_pose_lie_adds_up_over_frames_and_an_honest_senders_small_gains_
     rows = check.to_json()["evidence"]
     assert [r[13] for r in rows["cav2"]["per_frame"]] == [0.04, 0.08, 0.12, 0.16, 0.2]
     assert all(r[13] == 0.0 for r in rows["cav1"]["per_frame"])
+
+
+def test_a_caught_liar_is_left_out_of_the_witnesses_so_its_garbage_does_not_frame_an_honest_sender() -> None:
+    """cav2 claims vehicles everywhere (as features x 8 decode) and its rays stop in the area behind the ego that
+    honest cav1's rays pass freely: judged with cav2 among the witnesses, cav1 would have "removed" 120 m^2 of cars.
+    cav2's phantom over the ego's free road is the larger excess, so it is left out and cav1 judged again: clean."""
+    from v2vsim.perception.evidence import FREE, OCCUPIED, UNKNOWN
+
+    inp = _honest_inp()
+    maps = inp.outputs["cav2"][0].copy()
+    maps[0] = 1.0  # a vehicle in every cell
+    inp.outputs["cav2"] = (maps, inp.outputs["cav2"][1])
+    e, ce = 128, SIZE / 128
+
+    def band(x0: float, x1: float, value: int) -> np.ndarray:  # x0..x1 m forward, |y| < 3 m, in its own frame
+        g = np.full((e, e), UNKNOWN, np.uint8)
+        g[int((SIZE / 2 - x1) // ce):int((SIZE / 2 - x0) // ce), int((SIZE / 2 - 3) // ce):int((SIZE / 2 + 3) // ce)] \
+            = value
+        return g
+
+    inp.evidence = {"cav0": band(0, 40, FREE), "cav1": band(-20, 0, FREE), "cav2": band(-20, 0, OCCUPIED)}
+    sc = load_scenario("scenarios/t_junction.yaml", ["bev.size_m=100", "defence.evidence=true"])
+    check = SenderCheck(sc, model=None)  # type: ignore[arg-type]
+    _, flagged = check.check(0, inp, road_map=_road())
+    assert flagged == {"cav2"}
+    rows = check.to_json()["evidence"]
+    assert rows["cav2"]["per_frame"][0][1] > 9.91 and rows["cav1"]["per_frame"][0][2] == 0.0

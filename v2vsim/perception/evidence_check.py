@@ -109,14 +109,17 @@ def check_evidence(vehicle: dict[str, np.ndarray], evidence: dict[str, np.ndarra
     return {} if grid is None else judge_claims(grid, size_m, road)
 
 
-def judge_claims(grid: EgoGridEvidence, size_m: float, road: torch.Tensor | None) -> dict[str, EvidenceVerdict]:
-    """check_evidence on evidence already on the ego grid (road: [G, G] bool or None)."""
+def judge_claims(grid: EgoGridEvidence, size_m: float, road: torch.Tensor | None,
+                 ignore: frozenset[str] = frozenset()) -> dict[str, EvidenceVerdict]:
+    """check_evidence on evidence already on the ego grid (road: [G, G] bool or None); `ignore`d agents are left
+    out of every other agent's witnesses (a caught liar's claims and rays must not incriminate the honest) and
+    themselves still judged."""
     names, v, clear, free, occ = grid.names, grid.vehicle, grid.clear, grid.free, grid.occupied
     seen = occ & (v > CLAIM)  # a vehicle an agent both maps and stops its rays on
     cell_m2 = (size_m / v.shape[-1]) ** 2
     out: dict[str, EvidenceVerdict] = {}
     for i, s in enumerate(names):
-        others = [j for j in range(len(names)) if j != i]
+        others = [j for j in range(len(names)) if j != i and names[j] not in ignore]
         if not others:
             continue
         o_clear, o_occ, o_seen = clear[others].any(0), occ[others].any(0), seen[others].any(0)
